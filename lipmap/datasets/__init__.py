@@ -1,0 +1,1 @@
+"""Dataset readers (7-Scenes, synthetic) producing :class:`lipmap.scene.Scene`."""
