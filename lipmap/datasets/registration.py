@@ -77,3 +77,25 @@ def _fill_cracks(depth: np.ndarray) -> np.ndarray:
     out = depth.copy()
     out[fill] = nb_min[fill]
     return out
+
+
+def cross_view_depth_residuals(depth_i, view_i, depth_j, view_j, max_residual: float = 0.5) -> np.ndarray:
+    """|z_projected - z_observed| (metres) of frame i's depth points re-projected into frame j.
+
+    Back-projects the valid depth of view i (colour camera, ``view_i.cam_from_world``), moves the
+    points into view j, and compares their depth with view j's depth map at the landing pixel.
+    Residuals above ``max_residual`` (occlusions) are dropped. Measures how consistent depth and poses
+    are: registration that is right makes it small.
+    """
+    pts, _ = backproject(depth_i, view_i.camera)
+    j_from_i = view_j.cam_from_world @ np.linalg.inv(view_i.cam_from_world)
+    pts = pts @ j_from_i[:3, :3].T + j_from_i[:3, 3]
+    uv, z = project(pts, view_j.camera)
+    ok = z > 0.1
+    col = np.floor(uv[ok, 0]).astype(int)
+    row = np.floor(uv[ok, 1]).astype(int)
+    z = z[ok]
+    inb = (col >= 0) & (col < view_j.camera.width) & (row >= 0) & (row < view_j.camera.height)
+    zj = depth_j[row[inb], col[inb]]
+    res = np.abs(z[inb] - zj)[zj > 0]
+    return res[res < max_residual]
