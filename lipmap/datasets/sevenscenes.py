@@ -152,7 +152,8 @@ def _color_path(seq_dir: Path, idx: str) -> Path:
         p = seq_dir / f"frame-{idx}.color.{ext}"
         if p.exists():
             return p
-    raise InputError(f"frame {idx} has a pose but no colour image (frame-{idx}.color.png/.jpg)", seq_dir)
+    raise InputError("colour image is missing (frame has a pose file; looked for .color.png and .color.jpg)",
+                     seq_dir / f"frame-{idx}.color.png")
 
 
 def _read_sequence(scene_dir: Path, seq: int, step: int, camera: Camera, dcam, c_from_d, conf, pgt, meta_name):
