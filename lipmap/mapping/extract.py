@@ -1,0 +1,213 @@
+"""Line extraction after optimization (paper Sec. 3.4): accepted plane edges, merging, track building.
+
+1. ``extract_observations``: every pixel of every 1-pixel region is cast against the planes; the hit
+   plane's best edge is kept when its projection is within ``max_dist`` px and ``max_angle`` rad of
+   the detected line (paper: 1 px, 0.01 rad).
+2. ``merge_edges``: the accepted edges become 3D lines - one per edge (``none``), one per detected line
+   (``local``), or the paper's global merge: per detected line DBSCAN over its edges, identifiers
+   propagated through shared edges, one PCA-fitted segment per group (``global``).
+3. ``build_tracks``: the paper's track builder - a line is tracked in a view by every detected segment
+   its projection matches (angle < 0.01 rad, distance < 2 px, overlap > 0.2), if not occluded.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from tqdm import tqdm
+
+from .. import geometry as geo
+from .. import logger
+from .assign import PlaneRaycaster, assign_lines, corner_edges
+
+
+@dataclass
+class ExtractConfig:
+    max_dist: float = 1.0  # px, paper tau_d for extraction
+    max_angle: float = 0.01  # rad, paper tau_alpha
+    merge: str = "global"  # none | local | global
+    dbscan_eps: float = 0.01  # m, paper tau_dbscan
+    track_max_angle: float = 0.01
+    track_max_dist: float = 2.0
+    track_min_overlap: float = 0.2
+    occlusion_tol: float = 0.05  # relative depth tolerance of the visibility test
+    min_views: int = 1  # drop merged lines seen in fewer mapping views
+    min_length: float = 0.02  # m
+
+
+def extract_observations(corners, views, lines_by_view: dict, conf: ExtractConfig, progress: bool = True) -> dict:
+    """Accepted (view, detected line, plane, edge) observations over all views.
+
+    Args:
+        corners: :math:`(K, 4, 3)` numpy plane corners.
+        views: views with ``name``, ``camera``, ``cam_from_world``.
+        lines_by_view: {view name: (N, 4) detected segments in that view's camera pixels}.
+
+    Returns:
+        dict of equal-length int arrays ``view``, ``line``, ``plane``, ``edge`` (unique rows) and
+        ``n_pixels`` (how many region pixels voted for that row).
+    """
+    caster = PlaneRaycaster(corners)
+    rows = []
+    for vi, v in enumerate(tqdm(views, desc="extract lines", disable=not progress, leave=False)):
+        lines = np.asarray(lines_by_view.get(v.name, np.zeros((0, 4))), dtype=float)
+        if len(lines) == 0:
+            continue
+        a = assign_lines(caster, corners, lines, v.cam_from_world, v.camera)
+        ok = (a["angle"] <= conf.max_angle) & (a["dist"] <= conf.max_dist)
+        if ok.any():
+            rows.append(np.stack([np.full(ok.sum(), vi), a["line"][ok], a["plane"][ok], a["edge"][ok]], 1))
+    if not rows:
+        z = np.zeros(0, dtype=np.int64)
+        return {"view": z, "line": z, "plane": z, "edge": z, "n_pixels": z}
+    allr = np.concatenate(rows).astype(np.int64)
+    uniq, counts = np.unique(allr, axis=0, return_counts=True)
+    return {"view": uniq[:, 0], "line": uniq[:, 1], "plane": uniq[:, 2], "edge": uniq[:, 3], "n_pixels": counts}
+
+
+def _pca_segment(points: np.ndarray) -> np.ndarray:
+    """Segment (2, 3) spanning points along their principal direction."""
+    c = points.mean(0)
+    if len(points) < 2:
+        return np.stack([c, c])
+    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
+    d = vt[0]
+    t = (points - c) @ d
+    return np.stack([c + t.min() * d, c + t.max() * d])
+
+
+def _edge_distance_matrix(edges: np.ndarray, n: int = 10) -> np.ndarray:
+    """Symmetric mean perpendicular distance between 3D edges (M, 2, 3) -> (M, M), by sampling n points."""
+    pts = geo.sample_segments(edges, n)  # (M, n, 3)
+    p0 = edges[:, 0]
+    d = edges[:, 1] - p0
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    rel = pts[:, None] - p0[None, :, None]  # (M_a, M_b, n, 3) points of a vs line of b
+    perp = rel - (rel * d[None, :, None]).sum(-1, keepdims=True) * d[None, :, None]
+    D = np.linalg.norm(perp, axis=-1).mean(-1)
+    return 0.5 * (D + D.T)
+
+
+def merge_edges(corners, obs: dict, conf: ExtractConfig):
+    """Turn accepted plane edges into 3D lines.
+
+    Returns:
+        **lines** :math:`(L, 2, 3)`, **obs_line** :math:`(O,)` the line of each observation, and
+        **edge_line** :math:`(K, 4)` the line each plane edge belongs to (-1: none).
+    """
+    K = len(corners)
+    edge_line = np.full((K, 4), -1, dtype=np.int64)
+    if len(obs["plane"]) == 0:
+        return np.zeros((0, 2, 3)), np.zeros(0, dtype=np.int64), edge_line
+    all_edges = corner_edges(np.asarray(corners, dtype=float))  # (K, 4, 2, 3)
+    eid = obs["plane"] * 4 + obs["edge"]
+    uniq_e, e_of_obs = np.unique(eid, return_inverse=True)
+    E = all_edges.reshape(-1, 2, 3)[uniq_e]
+    det_key = obs["view"] * 1_000_000 + obs["line"]
+    _, det_of_obs = np.unique(det_key, return_inverse=True)
+
+    if conf.merge == "none":
+        group_of_edge = np.arange(len(uniq_e))
+    elif conf.merge in ("local", "global"):
+        from sklearn.cluster import DBSCAN
+
+        order = np.argsort(det_of_obs, kind="stable")
+        bounds = np.flatnonzero(np.diff(det_of_obs[order])) + 1
+        src, dst = [], []
+        local_lines, local_obs = [], []
+        for grp in np.split(order, bounds):
+            es = np.unique(e_of_obs[grp])
+            if conf.merge == "local":
+                local_lines.append(_pca_segment(E[es].reshape(-1, 3)))
+                local_obs.append(grp)
+                continue
+            if len(es) == 1:
+                continue
+            labels = DBSCAN(eps=conf.dbscan_eps, min_samples=1, metric="precomputed").fit_predict(_edge_distance_matrix(E[es]))
+            for lab in np.unique(labels):
+                members = es[labels == lab]
+                src.extend(members[:-1])
+                dst.extend(members[1:])
+        if conf.merge == "local":
+            lines = np.stack(local_lines)
+            obs_line = np.empty(len(eid), dtype=np.int64)
+            for li, grp in enumerate(local_obs):
+                obs_line[grp] = li
+            return _finish(lines, obs_line, obs, edge_line, conf, allow_edge_conflicts=True)
+        n = len(uniq_e)
+        g = coo_matrix((np.ones(len(src)), (src, dst)), shape=(n, n))
+        _, group_of_edge = connected_components(g, directed=False)
+    else:
+        raise ValueError(f"unknown merge mode {conf.merge!r}")
+
+    n_groups = group_of_edge.max() + 1
+    lines = np.stack([_pca_segment(E[group_of_edge == gi].reshape(-1, 3)) for gi in range(n_groups)])
+    obs_line = group_of_edge[e_of_obs]
+    edge_line.reshape(-1)[uniq_e] = group_of_edge
+    return _finish(lines, obs_line, obs, edge_line, conf)
+
+
+def _finish(lines, obs_line, obs, edge_line, conf, allow_edge_conflicts=False):
+    """Drop short lines and lines seen in too few views; renumber."""
+    n_views = np.zeros(len(lines), dtype=np.int64)
+    pairs = np.unique(np.stack([obs_line, obs["view"]], 1), axis=0)
+    np.add.at(n_views, pairs[:, 0], 1)
+    length = np.linalg.norm(lines[:, 1] - lines[:, 0], axis=1)
+    keep = (n_views >= conf.min_views) & (length >= conf.min_length)
+    new_id = np.full(len(lines), -1, dtype=np.int64)
+    new_id[keep] = np.arange(keep.sum())
+    if allow_edge_conflicts:
+        for l_old in np.flatnonzero(keep):
+            m = obs_line == l_old
+            edge_line[obs["plane"][m], obs["edge"][m]] = new_id[l_old]
+    else:
+        flat = edge_line.reshape(-1)
+        flat[flat >= 0] = new_id[flat[flat >= 0]]
+    return lines[keep], new_id[obs_line], edge_line
+
+
+def visible_mask(points_world: np.ndarray, view, depth: np.ndarray | None, tol: float) -> np.ndarray:
+    """Which points (N, 3) are in view and not occluded according to the view's depth map (0: unknown)."""
+    uv, z = geo.project_points(points_world, view.cam_from_world, view.camera)
+    W, H = view.camera.width, view.camera.height
+    inside = (z > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    if depth is None:
+        return inside
+    col = np.clip(uv[:, 0].astype(int), 0, W - 1)
+    row = np.clip(uv[:, 1].astype(int), 0, H - 1)
+    if depth.shape != (H, W):
+        import cv2
+
+        depth = cv2.resize(depth, (W, H), interpolation=cv2.INTER_NEAREST)
+    d = depth[row, col]
+    return inside & ((d <= 0) | (z <= d * (1 + tol) + 0.02))
+
+
+def build_tracks(lines: np.ndarray, views, lines_by_view: dict, conf: ExtractConfig, depth_by_view=None,
+                 progress: bool = True):
+    """The paper's track builder: (line, view, detected-line) triples where the projection matches.
+
+    Returns:
+        int array :math:`(T, 3)` of (line id, view index, 2D line index).
+    """
+    out = []
+    samples = geo.sample_segments(lines, 5) if len(lines) else np.zeros((0, 5, 3))
+    for vi, v in enumerate(tqdm(views, desc="build tracks", disable=not progress, leave=False)):
+        det = np.asarray(lines_by_view.get(v.name, np.zeros((0, 4))), dtype=float)
+        if len(det) == 0 or len(lines) == 0:
+            continue
+        depth = None if depth_by_view is None else depth_by_view.get(v.name)
+        vis = visible_mask(samples.reshape(-1, 3), v, depth, conf.occlusion_tol).reshape(len(lines), -1)
+        cand = np.flatnonzero(vis.sum(1) >= 3)
+        if len(cand) == 0:
+            continue
+        proj, valid = geo.project_segments(lines[cand], v.cam_from_world, v.camera)
+        m = geo.match_segments_2d(proj, det, conf.track_max_angle, conf.track_max_dist, conf.track_min_overlap)
+        m &= valid[:, None]
+        li, di = np.nonzero(m)
+        out.append(np.stack([cand[li], np.full(len(li), vi), di], 1))
+    if not out:
+        return np.zeros((0, 3), dtype=np.int64)
+    return np.unique(np.concatenate(out).astype(np.int64), axis=0)

@@ -1,0 +1,83 @@
+"""Line losses between detected 2D segments and the projections of their assigned plane edges (torch).
+
+Paper Sec. 3.3: endpoint (Euclidean) loss, orthogonal loss, and the group loss (an option, off in the
+reference code). Distances are in pixels of the image the lines were detected in.
+"""
+from __future__ import annotations
+
+import torch
+
+from .. import geometry as geo
+from .assign import EDGE_VERTS
+
+
+def assigned_edges(corners: torch.Tensor, plane_idx, edge_idx) -> torch.Tensor:
+    """(K, 4, 3) corners, (P,) plane and edge indices -> (P, 2, 3) 3D edges (differentiable)."""
+    ev = torch.as_tensor(EDGE_VERTS, device=corners.device)[torch.as_tensor(edge_idx, device=corners.device)]
+    c = corners[torch.as_tensor(plane_idx, device=corners.device)]  # (P, 4, 3)
+    return torch.gather(c, 1, ev[..., None].expand(-1, -1, 3))
+
+
+def line_loss_terms(edges3d: torch.Tensor, det: torch.Tensor, cam_from_world: torch.Tensor, camera):
+    """Per-assignment endpoint and orthogonal distances.
+
+    Args:
+        edges3d: :math:`(P, 2, 3)` world edges; det: :math:`(P, 4)` detected segments (px).
+
+    Returns:
+        **euc** :math:`(P,)` = min over endpoint orderings of the summed endpoint distances (paper D_euc),
+        **ort** :math:`(P,)` = summed distances of the projected endpoints to the detected line (D_ort),
+        **valid** :math:`(P,)` (edge in front of the camera).
+    """
+    proj, valid = geo.project_segments(edges3d, cam_from_world, camera)
+    d = det.reshape(-1, 2, 2)
+    proj = torch.where(valid[:, None, None], proj, d)  # invalid -> zero loss, masked below anyway
+    direct = (proj[:, 0] - d[:, 0]).norm(dim=-1) + (proj[:, 1] - d[:, 1]).norm(dim=-1)
+    swapped = (proj[:, 0] - d[:, 1]).norm(dim=-1) + (proj[:, 1] - d[:, 0]).norm(dim=-1)
+    euc = torch.minimum(direct, swapped)
+    ort = geo.perpendicular_distance(proj, d, reduce=None).sum(-1)
+    return euc, ort, valid
+
+
+def group_loss(edges3d: torch.Tensor, line_idx: torch.Tensor) -> torch.Tensor:
+    """Paper Eq. (group): 3D orthogonal distance between edges assigned to the same detected line.
+
+    For every pair of assignments of one line, the distances of one edge's endpoints to the other
+    edge's infinite 3D line, averaged. Returns 0 when no line has two assignments.
+    """
+    li = torch.as_tensor(line_idx, device=edges3d.device)
+    same = (li[:, None] == li[None]) & ~torch.eye(len(li), dtype=torch.bool, device=edges3d.device)
+    if not bool(same.any()):
+        return edges3d.sum() * 0
+    i, j = same.nonzero(as_tuple=True)
+    a, b = edges3d[i], edges3d[j]
+    db = b[:, 1] - b[:, 0]
+    db = db / db.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    rel = a - b[:, :1]  # (Q, 2, 3)
+    perp = rel - (rel * db[:, None]).sum(-1, keepdim=True) * db[:, None]
+    return perp.norm(dim=-1).mean()
+
+
+def line_loss(corners, plane_idx, edge_idx, det, line_idx, cam_from_world, camera, use_group: bool = False,
+              group_weight: float = 1.0):
+    """Mean over assignments of D_euc / 2 + max endpoint-to-line distance (the reference code's form),
+    plus the optional group loss (metres, weighted by ``group_weight``).
+
+    Args:
+        corners: :math:`(K, 4, 3)` plane corners with grad; plane_idx/edge_idx/line_idx: :math:`(P,)`;
+        det: :math:`(P, 4)` detected segments in pixels of ``camera``.
+    """
+    if len(plane_idx) == 0:
+        return corners.sum() * 0
+    edges = assigned_edges(corners, plane_idx, edge_idx)
+    T = torch.as_tensor(cam_from_world, dtype=corners.dtype, device=corners.device)
+    det = torch.as_tensor(det, dtype=corners.dtype, device=corners.device)
+    euc, _, valid = line_loss_terms(edges, det, T, camera)
+    proj, _ = geo.project_segments(edges, T, camera)
+    proj = torch.where(valid[:, None, None], proj, det.reshape(-1, 2, 2))
+    ort_max = geo.perpendicular_distance(proj, det.reshape(-1, 2, 2), reduce="max")
+    per = 0.5 * euc + ort_max
+    loss = per[valid].mean() if bool(valid.any()) else corners.sum() * 0
+    if use_group:
+        loss = loss + group_weight * group_loss(edges, line_idx)
+    return loss

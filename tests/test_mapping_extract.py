@@ -1,0 +1,130 @@
+"""Assignment, losses, extraction, merging and tracks on a hand-made scene with known answers."""
+import numpy as np
+import pytest
+import torch
+
+from lipmap import geometry as geo
+from lipmap.mapping.assign import PlaneRaycaster, assign_lines, best_edges, corner_edges, line_regions
+from lipmap.mapping.extract import ExtractConfig, build_tracks, extract_observations, merge_edges
+from lipmap.mapping.losses import assigned_edges, group_loss, line_loss
+from lipmap.poses import make_T
+from lipmap.scene import Camera, View
+from scipy.spatial.transform import Rotation
+
+CAM = Camera(320, 240, (262.5, 262.5, 160, 120))
+
+
+def rect(center, half_x, half_y, axes=np.eye(3)):
+    c = np.asarray(center, float)
+    X, Y = axes[0] * half_x, axes[1] * half_y
+    return np.stack([c + X + Y, c + X - Y, c - X - Y, c - X + Y])  # paper order v1..v4
+
+
+def scene():
+    wall = rect([0.1, -0.05, 3.0], 0.6, 0.4)
+    back = rect([0, 0, 5.0], 4, 3)
+    corners = np.stack([wall, back])
+    views = []
+    for i, (yaw, tx) in enumerate([(0.0, 0.0), (4.0, 0.15), (-5.0, -0.2)]):
+        R = Rotation.from_euler("y", yaw, degrees=True).as_matrix()
+        views.append(View(f"v{i}", CAM, make_T(R, [tx, 0.02 * i, 0]), color_path=None))
+    return corners, views
+
+
+def detected(corners, view, shrink=0.0):
+    """Projections of the wall's 4 edges, as a perfect detector would report them."""
+    e = corner_edges(corners[:1])[0]
+    seg, _ = geo.project_segments(e, view.cam_from_world, view.camera)
+    seg = seg.reshape(-1, 4)
+    if shrink:
+        d = seg[:, 2:] - seg[:, :2]
+        seg = np.concatenate([seg[:, :2] + shrink * d, seg[:, 2:] - shrink * d], 1)
+    return seg
+
+
+def test_line_regions_are_one_pixel_wide():
+    pix, li = line_regions(np.array([[10.0, 20.5, 50.0, 20.5]]), 100, 100)
+    centres = pix + 0.5
+    assert np.all(np.abs(centres[:, 1] - 20.5) <= 1.0)
+    assert set(np.unique(pix[:, 1])) == {19, 20, 21}
+    assert centres[:, 0].min() >= 10 and centres[:, 0].max() <= 50
+    assert (li == 0).all()
+
+
+def test_first_hit_and_best_edge():
+    corners, views = scene()
+    caster = PlaneRaycaster(corners)
+    det = detected(corners, views[0], shrink=0.1)
+    a = assign_lines(caster, corners, det, views[0].cam_from_world, CAM)
+    on_wall = a["plane"] == 0
+    assert on_wall.mean() > 0.4  # about half of each region lies on the wall
+    # every pixel that hit the wall picked the edge it was detected from, with sub-pixel distance
+    assert np.all(a["edge"][on_wall] == a["line"][on_wall])
+    assert np.all(a["dist"][on_wall] < 1e-6) and np.all(a["angle"][on_wall] < 1e-6)
+    # pixels that hit the background found a parallel edge but far away: rejected by distance
+    assert np.all(a["dist"][~on_wall] > 20)
+
+
+def test_extract_merge_tracks_recover_wall_edges():
+    corners, views = scene()
+    lines_by_view = {v.name: detected(corners, v, shrink=0.05) for v in views}
+    conf = ExtractConfig()
+    obs = extract_observations(corners, views, lines_by_view, conf, progress=False)
+    assert set(np.unique(obs["plane"])) == {0}
+    lines, obs_line, edge_line = merge_edges(corners, obs, conf)
+    assert len(lines) == 4
+    truth = corner_edges(corners[:1])[0]
+    for gt in truth:
+        d = geo.segment_to_segment_distance(gt[None], lines, n_samples=20, reduce="max", symmetric=True)
+        assert d.min() < 1e-9
+    assert set(edge_line[0]) == {0, 1, 2, 3} and (edge_line[1] == -1).all()
+    tracks = build_tracks(lines, views, lines_by_view, conf, progress=False)
+    # every line is tracked in every view by exactly its own detection
+    assert len(tracks) == 12
+    for l, v, d in tracks:
+        assert edge_line[0, d] == l
+
+
+def test_extraction_rejects_misaligned_planes():
+    corners, views = scene()
+    lines_by_view = {v.name: detected(corners, v) for v in views}
+    shifted = corners.copy()
+    shifted[0] += [0.03, 0.0, 0.0]  # 3 cm off: ~2.6 px at 3 m, beyond the 1 px threshold for the vertical edges
+    obs = extract_observations(shifted, views, lines_by_view, ExtractConfig(), progress=False)
+    kept_edges = set(np.unique(obs["edge"][obs["plane"] == 0]))
+    assert 0 not in kept_edges and 2 not in kept_edges  # vertical edges (x+ and x-) rejected
+
+
+def test_merge_modes():
+    corners, views = scene()
+    lines_by_view = {v.name: detected(corners, v, shrink=0.05) for v in views}
+    obs = extract_observations(corners, views, lines_by_view, ExtractConfig(), progress=False)
+    n_none = len(merge_edges(corners, obs, ExtractConfig(merge="none"))[0])
+    n_local = len(merge_edges(corners, obs, ExtractConfig(merge="local"))[0])
+    assert n_none == 4 and n_local == 12  # local keeps one line per detected line (4 x 3 views)
+
+
+def test_line_loss_zero_at_truth_and_gradient_moves_plane_back():
+    corners, views = scene()
+    det = detected(corners, views[0])
+    plane = np.zeros(4, int)
+    edge = np.arange(4)
+    c = torch.tensor(corners, requires_grad=True)
+    loss = line_loss(c, plane, edge, torch.tensor(det), np.arange(4), views[0].cam_from_world, CAM)
+    assert loss.item() < 1e-9
+    c2 = torch.tensor(corners + np.array([0.02, 0, 0]), requires_grad=True)
+    opt = torch.optim.Adam([c2], lr=2e-3)
+    first = None
+    for _ in range(150):
+        opt.zero_grad()
+        l = line_loss(c2, plane, edge, torch.tensor(det), np.arange(4), views[0].cam_from_world, CAM)
+        first = first or l.item()
+        l.backward()
+        opt.step()
+    assert l.item() < 0.2 * first
+
+
+def test_group_loss():
+    e = torch.tensor([[[0, 0, 0], [1, 0, 0]], [[0, 0.1, 0], [1, 0.1, 0]], [[0, 0, 0], [0, 1, 0]]], dtype=torch.float64)
+    assert group_loss(e[:2], torch.tensor([0, 0])).item() == pytest.approx(0.1)
+    assert group_loss(e, torch.tensor([0, 1, 2])).item() == 0.0
