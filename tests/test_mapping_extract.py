@@ -128,3 +128,21 @@ def test_group_loss():
     e = torch.tensor([[[0, 0, 0], [1, 0, 0]], [[0, 0.1, 0], [1, 0.1, 0]], [[0, 0, 0], [0, 1, 0]]], dtype=torch.float64)
     assert group_loss(e[:2], torch.tensor([0, 0])).item() == pytest.approx(0.1)
     assert group_loss(e, torch.tensor([0, 1, 2])).item() == 0.0
+
+
+def test_torch_raycaster_agrees_with_embree():
+    rng = np.random.default_rng(0)
+    corners = np.stack(
+        [rect(rng.uniform(-1, 1, 3) + [0, 0, 3], *rng.uniform(0.1, 0.5, 2), Rotation.random(random_state=i).as_matrix())
+         for i in range(60)]
+    )
+    pix = np.stack([rng.integers(0, 320, 500), rng.integers(0, 240, 500)], 1)
+    from lipmap.mapping.assign import first_hit_torch, pixel_rays_world
+
+    o, d = pixel_rays_world(pix, np.eye(4), CAM)
+    k_e, t_e = PlaneRaycaster(corners).first_hit(o, d)
+    k_t, t_t = first_hit_torch(torch.tensor(corners), torch.tensor(o), torch.tensor(d))
+    assert (k_e >= 0).sum() > 50
+    agree = k_t.numpy() == k_e
+    assert agree.mean() > 0.99  # ties at shared borders may differ
+    np.testing.assert_allclose(t_t.numpy()[agree & (k_e >= 0)], t_e[agree & (k_e >= 0)], atol=1e-6)

@@ -173,3 +173,44 @@ def assign_lines(raycaster: PlaneRaycaster, corners, lines2d, cam_from_world, ca
     pixels, line_idx, plane, dist_ray = pixels[hit], line_idx[hit], plane[hit], dist_ray[hit]
     edge, ang, dmax, _ = best_edges(corners, plane, np.asarray(lines2d).reshape(-1, 4)[line_idx], cam_from_world, camera)
     return {"pixel": pixels, "line": line_idx, "plane": plane, "edge": edge, "angle": ang, "dist": dmax, "depth": dist_ray}
+
+
+def first_hit_torch(corners, origins, dirs, chunk: int = 2048):
+    """First-hit ray casting against rectangles, brute force in torch (no grad; CPU or CUDA).
+
+    The twin of :class:`PlaneRaycaster` for the few hundred rays sampled per training iteration,
+    where building a BVH each iteration would cost more than testing every plane.
+
+    Args:
+        corners: :math:`(K, 4, 3)` tensor; origins, dirs: :math:`(P, 3)` tensors (dirs unit).
+
+    Returns:
+        plane index :math:`(P,)` long (-1 miss) and hit distance :math:`(P,)` (inf miss).
+    """
+    import torch
+
+    with torch.no_grad():
+        corners = corners.detach()
+        v1, v2, v3, v4 = corners.unbind(1)
+        ex, ey = v1 - v4, v1 - v2  # full-length x and y edge vectors
+        lx, ly = ex.norm(dim=-1).clamp_min(1e-12), ey.norm(dim=-1).clamp_min(1e-12)
+        X, Y = ex / lx[:, None], ey / ly[:, None]
+        n = torch.linalg.cross(X, Y)
+        P = len(origins)
+        best_t = torch.full((P,), float("inf"), dtype=corners.dtype, device=corners.device)
+        best_k = torch.full((P,), -1, dtype=torch.long, device=corners.device)
+        for s in range(0, P, chunk):
+            o, d = origins[s : s + chunk], dirs[s : s + chunk]
+            denom = d @ n.T  # (p, K)
+            num = (v3 * n).sum(-1)[None] - o @ n.T
+            t = num / torch.where(denom.abs() > 1e-12, denom, torch.full_like(denom, 1e-12))
+            hit = o[:, None] + t[..., None] * d[:, None]  # (p, K, 3)
+            rel = hit - v3[None]
+            u = (rel * X[None]).sum(-1)
+            w = (rel * Y[None]).sum(-1)
+            ok = (t > 1e-6) & (denom.abs() > 1e-12) & (u >= 0) & (u <= lx[None]) & (w >= 0) & (w <= ly[None])
+            t = torch.where(ok, t, torch.full_like(t, float("inf")))
+            tmin, kmin = t.min(dim=1)
+            best_t[s : s + chunk] = tmin
+            best_k[s : s + chunk] = torch.where(torch.isfinite(tmin), kmin, torch.full_like(kmin, -1))
+        return best_k, best_t
