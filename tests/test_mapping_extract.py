@@ -11,24 +11,11 @@ from lipmap.poses import make_T
 from lipmap.scene import Camera, View
 from scipy.spatial.transform import Rotation
 
-CAM = Camera(320, 240, (262.5, 262.5, 160, 120))
-
-
-def rect(center, half_x, half_y, axes=np.eye(3)):
-    c = np.asarray(center, float)
-    X, Y = axes[0] * half_x, axes[1] * half_y
-    return np.stack([c + X + Y, c + X - Y, c - X - Y, c - X + Y])  # paper order v1..v4
+from lipmap.testing import SMALL_CAMERA as CAM, rect, wall_scene
 
 
 def scene():
-    wall = rect([0.1, -0.05, 3.0], 0.6, 0.4)
-    back = rect([0, 0, 5.0], 4, 3)
-    corners = np.stack([wall, back])
-    views = []
-    for i, (yaw, tx) in enumerate([(0.0, 0.0), (4.0, 0.15), (-5.0, -0.2)]):
-        R = Rotation.from_euler("y", yaw, degrees=True).as_matrix()
-        views.append(View(f"v{i}", CAM, make_T(R, [tx, 0.02 * i, 0]), color_path=None))
-    return corners, views
+    return wall_scene()
 
 
 def detected(corners, view, shrink=0.0):

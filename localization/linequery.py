@@ -1,0 +1,162 @@
+"""Query a line map with an initial pose: 2D-3D line matches for one query image.
+
+Two ways, selectable (``LineQueryConfig.method``):
+- ``raycast`` (the paper's): cast the rays of each query line's 1-pixel region against the map's
+  planes, take the hit plane's best edge, and look up the 3D line that edge belongs to; a vote over
+  the region's pixels picks the line. Occlusion is handled by construction (first hit).
+- ``projection``: project the map's lines with the initial pose, keep those not occluded by the
+  planes (when the map has planes), and match each query line to the projected line that is closest
+  in angle and perpendicular distance with enough overlap.
+Both finish with the same geometric check (angle, distance) so their outputs are comparable.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lipmap import geometry as geo
+from lipmap.mapping.assign import PlaneRaycaster, best_edges, line_regions, pixel_rays_world
+
+
+@dataclass
+class LineQueryConfig:
+    method: str = "projection"  # projection | raycast
+    max_angle_deg: float = 2.0  # query line vs projected 3D line, with the INITIAL pose
+    max_dist_px: float = 4.0  # max distance of the query endpoints to the projected 3D line
+    min_overlap: float = 0.3  # overlap of the projected 3D line on the query line (projection method)
+    min_length_px: float = 20.0  # query lines shorter than this are not used
+    min_votes: float = 0.5  # raycast: share of the resolved pixels of a region that must agree on the line
+    min_pixels: int = 3  # raycast: and at least this many pixels
+    # raycast: region half-width. The paper's 1 px assumes a near-exact pose; with an initial pose a
+    # few pixels off, a 1-px region can fall wholly on the far side of the edge and miss its plane.
+    region_radius: float = 3.0
+    occlusion_tol: float = 0.05  # m, projection method's visibility test against the planes
+
+
+class LineQuery:
+    """Holds a line map's lines, planes and raycaster; ``match`` answers one query."""
+
+    def __init__(self, lines3d: np.ndarray, corners: np.ndarray | None = None, edge_line: np.ndarray | None = None):
+        self.lines = np.asarray(lines3d, dtype=float).reshape(-1, 2, 3)
+        self.corners = None if corners is None or len(corners) == 0 else np.asarray(corners, dtype=float)
+        self.edge_line = None if edge_line is None else np.asarray(edge_line, dtype=np.int64)
+        self.caster = PlaneRaycaster(self.corners) if self.corners is not None else None
+
+    @classmethod
+    def from_linemap(cls, linemap) -> "LineQuery":
+        planes = linemap.planes or {}
+        return cls(linemap.lines, planes.get("corners"), planes.get("edge_line"))
+
+    def match(self, lines2d: np.ndarray, cam_from_world: np.ndarray, camera, conf: LineQueryConfig) -> dict:
+        """2D-3D line matches for a query.
+
+        Args:
+            lines2d: :math:`(N, 4)` query segments (COLMAP pixels of ``camera``).
+            cam_from_world: :math:`(4, 4)` initial pose.
+
+        Returns:
+            dict with ``query_idx`` (M,), ``line_idx`` (M,), ``lines2d`` (M, 2, 2), ``lines3d`` (M, 2, 3),
+            ``angle`` (M,) rad and ``dist`` (M,) px under the initial pose.
+        """
+        lines2d = np.asarray(lines2d, dtype=float).reshape(-1, 4)
+        keep = np.linalg.norm(lines2d[:, 2:] - lines2d[:, :2], axis=1) >= conf.min_length_px
+        qidx = np.flatnonzero(keep)
+        if len(qidx) == 0 or len(self.lines) == 0:
+            return _empty()
+        if conf.method == "raycast":
+            if self.caster is None or self.edge_line is None:
+                raise ValueError("the raycast line query needs a line map with planes (lipmap maps have them)")
+            cand_q, cand_l = self._raycast(lines2d[qidx], cam_from_world, camera, conf)
+            cand_q = qidx[cand_q]
+        elif conf.method == "projection":
+            cand_q, cand_l = self._projection(lines2d[qidx], cam_from_world, camera, conf)
+            cand_q = qidx[cand_q]
+        else:
+            raise ValueError(f"unknown line query method {conf.method!r}")
+        return self._verify(lines2d, cand_q, cand_l, cam_from_world, camera, conf)
+
+    def _raycast(self, q, T, camera, conf):
+        pix, li = line_regions(q, camera.width, camera.height, radius=conf.region_radius)
+        o, d = pixel_rays_world(pix, T, camera)
+        plane, _ = self.caster.first_hit(o, d)
+        hit = plane >= 0
+        pix, li, plane = pix[hit], li[hit], plane[hit]
+        edge, _, _, _ = best_edges(self.corners, plane, q[li], T, camera)
+        line3d = self.edge_line[plane, edge]
+        ok = line3d >= 0
+        # About half of a region lies on the far side of the edge and hits another surface, so the
+        # vote counts only pixels that resolved to some map line.
+        resolved = np.bincount(li[ok], minlength=len(q)).astype(float)
+        out_q, out_l = [], []
+        if ok.any():
+            pairs, counts = np.unique(np.stack([li[ok], line3d[ok]], 1), axis=0, return_counts=True)
+            order = np.lexsort((-counts, pairs[:, 0]))
+            pairs, counts = pairs[order], counts[order]
+            first = np.r_[True, pairs[1:, 0] != pairs[:-1, 0]]
+            for (qi, l3), c in zip(pairs[first], counts[first]):
+                if c >= max(conf.min_votes * resolved[qi], conf.min_pixels):
+                    out_q.append(qi)
+                    out_l.append(l3)
+        return np.array(out_q, dtype=np.int64), np.array(out_l, dtype=np.int64)
+
+    def visible_lines(self, T, camera, tol: float) -> np.ndarray:
+        """Indices of map lines in front of the camera, inside the image, and not hidden by the planes."""
+        proj, valid = geo.project_segments(self.lines, T, camera)
+        clipped, inside = geo.clip_segments_to_image(np.where(valid[:, None, None], proj, 0), camera.width, camera.height)
+        idx = np.flatnonzero(valid & inside)
+        if self.caster is None or len(idx) == 0:
+            return idx
+        C = -T[:3, :3].T @ T[:3, 3]
+        pts = geo.sample_segments(self.lines[idx], 3)  # (n, 3, 3): endpoints and midpoint
+        vec = pts - C
+        dist = np.linalg.norm(vec, axis=-1)
+        dirs = vec / np.maximum(dist[..., None], 1e-9)
+        _, hit = self.caster.first_hit(np.broadcast_to(C, dirs.reshape(-1, 3).shape).copy(), dirs.reshape(-1, 3))
+        unocc = hit.reshape(dist.shape) >= dist - tol - 0.02 * dist
+        return idx[unocc.sum(1) >= 2]
+
+    def _projection(self, q, T, camera, conf):
+        vis = self.visible_lines(T, camera, conf.occlusion_tol)
+        if len(vis) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        proj, _ = geo.project_segments(self.lines[vis], T, camera)
+        qs = geo.as_segments2d(q)
+        with np.errstate(invalid="ignore"):
+            ang = geo.pairwise_angle_distance(qs, proj)  # (Nq, Nv)
+            dist = geo.pairwise_perpendicular_distance(qs, proj, "max")
+            ov = geo.pairwise_overlap_ratio(proj, qs).T  # overlap of projected line on query line
+        ok = (ang <= np.radians(conf.max_angle_deg)) & (dist <= conf.max_dist_px) & (ov >= conf.min_overlap)
+        score = np.where(ok, dist + 10 * np.degrees(ang) / max(conf.max_angle_deg, 1e-9), np.inf)
+        best = np.argmin(score, axis=1)
+        has = np.isfinite(score[np.arange(len(q)), best])
+        return np.flatnonzero(has), vis[best[has]]
+
+    def _verify(self, lines2d, cand_q, cand_l, T, camera, conf):
+        if len(cand_q) == 0:
+            return _empty()
+        proj, valid = geo.project_segments(self.lines[cand_l], T, camera)
+        qs = geo.as_segments2d(lines2d[cand_q])
+        with np.errstate(invalid="ignore"):
+            ang = geo.angle_distance(qs, proj)
+            dist = geo.perpendicular_distance(qs, proj, "max")
+        ok = valid & (ang <= np.radians(conf.max_angle_deg)) & (dist <= conf.max_dist_px)
+        return {
+            "query_idx": cand_q[ok],
+            "line_idx": cand_l[ok],
+            "lines2d": qs[ok],
+            "lines3d": self.lines[cand_l[ok]],
+            "angle": ang[ok],
+            "dist": dist[ok],
+        }
+
+
+def _empty() -> dict:
+    return {
+        "query_idx": np.zeros(0, np.int64),
+        "line_idx": np.zeros(0, np.int64),
+        "lines2d": np.zeros((0, 2, 2)),
+        "lines3d": np.zeros((0, 2, 3)),
+        "angle": np.zeros(0),
+        "dist": np.zeros(0),
+    }

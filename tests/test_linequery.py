@@ -1,0 +1,60 @@
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from lipmap import geometry as geo
+from lipmap.mapping.assign import corner_edges
+from lipmap.poses import make_T
+from lipmap.testing import SMALL_CAMERA, rect, wall_scene
+from localization.linequery import LineQuery, LineQueryConfig
+
+
+def _map():
+    corners, views = wall_scene()
+    # map lines: the panel's 4 edges and 4 edges of a small frame on the back wall hidden by the panel
+    hidden = rect([0.1, -0.05, 4.99], 0.3, 0.2)
+    lines = np.concatenate([corner_edges(corners[:1])[0], corner_edges(hidden[None])[0]])
+    edge_line = np.full((2, 4), -1)
+    edge_line[0] = [0, 1, 2, 3]
+    return corners, views, lines, edge_line
+
+
+def _query_lines(lines3d, T, shrink=0.1):
+    seg, _ = geo.project_segments(lines3d, T, SMALL_CAMERA)
+    seg = seg.reshape(-1, 4)
+    d = seg[:, 2:] - seg[:, :2]
+    return np.concatenate([seg[:, :2] + shrink * d, seg[:, 2:] - shrink * d], 1)
+
+
+@pytest.mark.parametrize("method", ["raycast", "projection"])
+def test_line_query_matches_visible_lines_under_perturbed_pose(method):
+    corners, views, lines, edge_line = _map()
+    T_true = views[1].cam_from_world
+    q = _query_lines(lines[:4], T_true)
+    # initial pose off by 1 cm and 0.2 deg
+    dR = Rotation.from_euler("xy", [0.1, 0.15], degrees=True).as_matrix()
+    T_init = make_T(dR @ T_true[:3, :3], T_true[:3, 3] + [0.01, 0.0, 0.0])
+    lq = LineQuery(lines, corners, edge_line)
+    m = lq.match(q, T_init, SMALL_CAMERA, LineQueryConfig(method=method, max_dist_px=8, max_angle_deg=3))
+    assert sorted(zip(m["query_idx"], m["line_idx"])) == [(0, 0), (1, 1), (2, 2), (3, 3)]
+
+
+def test_projection_ignores_occluded_lines():
+    corners, views, lines, edge_line = _map()
+    T = views[0].cam_from_world
+    lq = LineQuery(lines, corners, edge_line)
+    vis = lq.visible_lines(T, SMALL_CAMERA, 0.05)
+    assert set(vis) == {0, 1, 2, 3}  # the back-wall frame lies behind the panel
+    # a query line drawn exactly where the hidden frame projects must not match it
+    q = _query_lines(lines[4:], T, shrink=0.0)
+    m = lq.match(q, T, SMALL_CAMERA, LineQueryConfig(method="projection"))
+    assert not np.isin(m["line_idx"], [4, 5, 6, 7]).any()
+
+
+def test_short_and_empty():
+    corners, views, lines, edge_line = _map()
+    lq = LineQuery(lines, corners, edge_line)
+    m = lq.match(np.zeros((0, 4)), views[0].cam_from_world, SMALL_CAMERA, LineQueryConfig())
+    assert len(m["query_idx"]) == 0
+    m = LineQuery(np.zeros((0, 2, 3))).match(np.array([[0, 0, 100, 0.0]]), views[0].cam_from_world, SMALL_CAMERA, LineQueryConfig())
+    assert len(m["line_idx"]) == 0
