@@ -1,1 +1,6 @@
-"""Line-assisted visual localization with LiP-Map line maps (points from SIFT or hloc, lines from the map)."""
+"""lipmap localization: 2D-3D point matches (built-in SIFT pipeline or hloc's files), retrieval,
+initial pose from points, line queries and joint point+line refinement.
+
+Submodules are imported on use (``from localization import points``) so that ``import
+localization`` stays light.
+"""
