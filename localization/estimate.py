@@ -127,3 +127,90 @@ def subsample_matches(n: int, N: Optional[int], seed: int, query_name: str) -> n
     digest = hashlib.sha256(query_name.encode("utf-8")).digest()
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, *np.frombuffer(digest[:16], dtype=np.uint32).tolist()])
     return np.sort(rng.choice(n, size=N, replace=False))
+
+
+# ----------------------------------------------------------------------------------------------
+# joint point + line refinement
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class PointLinePoseConf:
+    """Options of the joint point+line pose (PoseLib PnPL: LO-RANSAC over points and lines + bundle).
+
+    ``max_line_error`` is PoseLib's ``RansacOptions.max_epipolar_error``: the line inlier threshold,
+    in pixels, on the distance of the projected 3D endpoints to the 2D line (PoseLib's default, 1 px,
+    is tighter than LSD's endpoint noise on real images; chosen by measurement, see the README).
+    """
+
+    max_reproj_error: float = 12.0  # px, points (as the point-only pose)
+    max_line_error: float = 2.0  # px, lines -> RansacOptions.max_epipolar_error
+    min_lines: int = 3  # fewer line matches -> keep the point-only pose
+    seed: int = 0
+    min_iterations: int = 100
+    max_iterations: int = 10_000
+    success_prob: float = 0.9999
+    bundle: dict = field(default_factory=dict)
+
+
+def estimate_pose_point_line(
+    p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, lines3d: np.ndarray, camera,
+    initial: Optional[np.ndarray] = None, conf: Optional[PointLinePoseConf] = None,
+) -> dict:
+    """Pose from 2D-3D points and 2D-3D lines with ``poselib.estimate_absolute_pose_pnpl``.
+
+    Args:
+        p2d: (N, 2) COLMAP pixels; p3d: (N, 3).
+        lines2d: (M, 2, 2) query segments (COLMAP pixels); lines3d: (M, 2, 3) matched 3D segments.
+        initial: (4, 4) cam_from_world to seed RANSAC with (the point-only pose).
+
+    Returns:
+        dict with **cam_from_world** (or None), **success**, **n_inliers** (points), **n_line_inliers**,
+        **line_inliers** (M,) bool, **n_lines**; never raises for a bad query.
+    """
+    conf = conf or PointLinePoseConf()
+    p2d = np.asarray(p2d, dtype=np.float64).reshape(-1, 2)
+    p3d = np.asarray(p3d, dtype=np.float64).reshape(-1, 3)
+    l2 = np.asarray(lines2d, dtype=np.float64).reshape(-1, 2, 2)
+    l3 = np.asarray(lines3d, dtype=np.float64).reshape(-1, 2, 3)
+    n, m = len(p2d), len(l2)
+    fail = {"cam_from_world": None, "success": False, "n_inliers": 0, "n_line_inliers": 0,
+            "line_inliers": np.zeros(m, bool), "n_lines": m}
+    okp = np.isfinite(p2d).all(1) & np.isfinite(p3d).all(1)
+    okl = np.isfinite(l2).all((1, 2)) & np.isfinite(l3).all((1, 2))
+    if okl.sum() < conf.min_lines:
+        return {**fail, "reason": f"{int(okl.sum())} line matches < {conf.min_lines}"}
+    if okp.sum() + okl.sum() < 4:
+        return {**fail, "reason": "fewer than 4 correspondences"}
+    import poselib
+
+    ransac = {
+        "max_reproj_error": float(conf.max_reproj_error),
+        "max_epipolar_error": float(conf.max_line_error),
+        "seed": int(conf.seed),
+        "min_iterations": int(conf.min_iterations),
+        "max_iterations": int(conf.max_iterations),
+        "success_prob": float(conf.success_prob),
+    }
+    kw = {}
+    if initial is not None and np.all(np.isfinite(initial)):
+        init = poselib.CameraPose()
+        init.R = np.asarray(initial[:3, :3], dtype=np.float64)
+        init.t = np.asarray(initial[:3, 3], dtype=np.float64)
+        kw["initial_pose"] = init
+    li = np.flatnonzero(okl)
+    pi = np.flatnonzero(okp)
+    try:
+        pose, info = poselib.estimate_absolute_pose_pnpl(
+            p2d[pi], p3d[pi], l2[li, 0], l2[li, 1], l3[li, 0], l3[li, 1], _camera_dict(camera), ransac,
+            dict(conf.bundle), **kw,
+        )
+    except Exception as e:  # malformed input only; the query keeps its point-only pose
+        logger.warning("PoseLib PnPL failed: %s", e)
+        return {**fail, "reason": f"PoseLib error: {e}"}
+    T = make_T(np.asarray(pose.R), np.asarray(pose.t))
+    line_inl = np.zeros(m, bool)
+    line_inl[li] = np.asarray(info.get("inliers_lines", np.zeros(len(li))), dtype=bool)
+    pt_inl = np.zeros(n, bool)
+    pt_inl[pi] = np.asarray(info.get("inliers_points", info.get("inliers", np.zeros(len(pi)))), dtype=bool)
+    ok = bool(np.all(np.isfinite(T)) and pt_inl.sum() + line_inl.sum() >= 4)
+    return {"cam_from_world": T if np.all(np.isfinite(T)) else None, "success": ok, "n_inliers": int(pt_inl.sum()),
+            "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": m}
