@@ -219,6 +219,14 @@ def _voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
     return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
 
 
+def _voxel_sums(keys: np.ndarray, values: np.ndarray, counts: np.ndarray):
+    """Group rows by key: (unique keys, summed values (K, 3), summed counts (K,))."""
+    uk, inv = np.unique(keys, return_inverse=True)
+    inv = inv.reshape(-1)
+    sums = np.stack([np.bincount(inv, values[:, i], len(uk)) for i in range(values.shape[1])], 1)
+    return uk, sums, np.bincount(inv, counts, len(uk))
+
+
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     """Centroid of the points in each occupied voxel (deterministic order: sorted voxel keys)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -249,8 +257,8 @@ def gt_from_depth(views: Sequence, voxel: float = 0.01, stride: int = 1, max_dep
     from .datasets.registration import backproject
     from .poses import invert_T
 
-    # per-voxel running sums keep memory at O(voxels), not O(pixels x views)
-    keys_all, sums_all, counts_all = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+    # per-frame voxel sums first (a frame's 300k points shrink ~5x at 1 cm), one merge at the end
+    keys_l, sums_l, counts_l = [], [], []
     for v in tqdm(views, desc="fuse depth", disable=len(views) < 2):
         depth = v.load_depth()
         if stride > 1:
@@ -259,15 +267,17 @@ def gt_from_depth(views: Sequence, voxel: float = 0.01, stride: int = 1, max_dep
             depth = d
         depth = np.where(depth < max_depth, depth, 0)
         pts, _ = backproject(depth, v.camera)
+        if not len(pts):
+            continue
         T = invert_T(v.cam_from_world)
         pts = pts @ T[:3, :3].T + T[:3, 3]
-        uk, inv = np.unique(np.concatenate([keys_all, _voxel_keys(pts, voxel)]), return_inverse=True)
-        inv = inv.reshape(-1)
-        sums = np.stack([np.bincount(inv, np.concatenate([sums_all[:, i], pts[:, i]]), len(uk)) for i in range(3)], 1)
-        counts = np.bincount(inv, np.concatenate([counts_all, np.ones(len(pts))]), len(uk))
-        keys_all, sums_all, counts_all = uk, sums, counts
-    if len(keys_all) == 0:
+        k, s, c = _voxel_sums(_voxel_keys(pts, voxel), pts, np.ones(len(pts)))
+        keys_l.append(k)
+        sums_l.append(s)
+        counts_l.append(c)
+    if not keys_l:
         raise InputError("no valid depth in the given views")
+    _, sums_all, counts_all = _voxel_sums(np.concatenate(keys_l), np.concatenate(sums_l), np.concatenate(counts_l))
     return sums_all / counts_all[:, None]
 
 

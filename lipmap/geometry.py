@@ -259,11 +259,21 @@ def angle_distance(a, b):
 
 
 def point_line_distance(points, segments):
-    """Distance of 2D points (..., 2) to the INFINITE line through segments (..., 2, 2)."""
-    s = as_segments2d(segments)
+    """Distance of points (..., D) to the INFINITE lines through segments (..., 2, D), D = 2 or 3.
+
+    (2D segments may also be given as (..., 4).)
+    """
+    points = _as_float(points)
+    if points.shape[-1] == 2:
+        s = as_segments2d(segments)
+        d = s[..., 1, :] - s[..., 0, :]
+        xp = _xp(points, s)
+        return xp.abs(_cross2(d, points - s[..., 0, :])) / _norm(d).clip(min=_EPS)
+    s = _as_float(segments)
     d = s[..., 1, :] - s[..., 0, :]
-    xp = _xp(points, s)
-    return xp.abs(_cross2(d, points - s[..., 0, :])) / _norm(d).clip(min=_EPS)
+    r = points - s[..., 0, :]
+    t = (r * d).sum(axis=-1, keepdims=True) / (d * d).sum(axis=-1, keepdims=True).clip(min=_EPS)
+    return _norm(r - t * d)
 
 
 def perpendicular_distance(a, b, reduce: Optional[str] = "max"):

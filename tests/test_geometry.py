@@ -187,6 +187,10 @@ class TestTorchMeasures:
 
 
 class Test3D:
+    def test_point_line_distance_3d(self):
+        seg = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 2.0]])  # the line x = y = 1 (infinite)
+        np.testing.assert_allclose(G.point_line_distance(np.array([[4.0, 5.0, 10.0], [1.0, 0.0, -3.0]]), seg), [5.0, 1.0])
+
     def test_sample_segments(self):
         s = np.array([[[0.0, 0.0, 0.0], [2.0, 4.0, 6.0]]])
         np.testing.assert_allclose(G.sample_segments(s, 3)[0], [[0, 0, 0], [1, 2, 3], [2, 4, 6]])
