@@ -76,6 +76,83 @@ def cmd_info(args):
         print(f"  pose source: {s['pose_source']}   mapping camera extent {s['mapping_extent_m']} m")
 
 
+def cmd_eval(args):
+    from dataclasses import replace
+
+    from .pipeline import LocalizationConfig, run_eval
+    from .linequery import LineQueryConfig
+
+    conf = LocalizationConfig(seed=args.seed, max_point_matches=args.max_point_matches, mapping=args.preset,
+                              map_method=args.method, points=args.points)
+    if args.line_query:
+        conf = replace(conf, line_query=replace(LineQueryConfig(), method=args.line_query))
+    if args.dataset == "synthetic" and args.root is None:
+        from lipmap.datasets.synthetic import generate_scene
+
+        root = Path(args.out) / "synthetic-data"
+        scene_dir = generate_scene(root, seed=args.seed, preset=args.synth_preset)
+        scenes = [scene_dir.name]
+    else:
+        if args.root is None:
+            raise InputError("--root is required for --dataset 7scenes")
+        root = args.root
+        scenes = _scene_names(args.dataset, root, args.scenes)
+    path = run_eval(args.dataset, root, scenes, args.out, conf, hloc_dir=args.hloc, pose_source=args.pose_source,
+                    register_depth=not args.no_registration, overwrite=args.overwrite, mapping_step=args.mapping_step)
+    summary = path.parent / "summary.md"
+    print(summary.read_text())
+    print(f"results: {path}\nsummary: {summary}")
+    try:
+        from .report import write_report
+
+        write_report(args.out, args.dataset)
+    except ImportError:
+        pass
+
+
+def cmd_map(args):
+    from lipmap.datasets import load_scene
+    from lipmap.mapping.pipeline import map_scene
+
+    scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source,
+                       register_depth=not args.no_registration, mapping_step=args.mapping_step)
+    path = map_scene(scene, args.out, args.preset, args.method, args.lines, args.overwrite)
+    from lipmap.linemap import LineMap
+
+    lm = LineMap.load(path)
+    t = lm.metadata.get("timings", {})
+    print(f"{len(lm)} lines -> {path}")
+    print(f"mapping time: {t.get('total_s', float('nan')):.1f} s ({json.dumps({k: round(v, 1) for k, v in t.items()})})")
+
+
+def cmd_map_eval(args):
+    from lipmap.evaluation import evaluate_linemap, format_metrics
+    from lipmap.linemap import LineMap
+
+    lm = LineMap.load(args.linemap)
+    if args.gt is not None:
+        gt = args.gt
+    else:
+        if not (args.dataset and args.root and args.scene):
+            raise InputError("give --gt MESH_OR_PLY, or --dataset, --root and --scene")
+        from lipmap.datasets import load_scene
+
+        scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source)
+        if scene.gt_mesh is not None:
+            gt = scene.gt_mesh
+        else:
+            from lipmap.evaluation import gt_from_depth
+
+            gt = gt_from_depth(scene.mapping + scene.query)
+    res = evaluate_linemap(lm, gt)
+    print(format_metrics(res))
+    if args.json:
+        from lipmap.imageio import write_text_atomic
+
+        write_text_atomic(args.json, json.dumps(res, indent=1, default=float))
+        print(f"metrics: {args.json}")
+
+
 def _add_dataset_args(p, scenes=True):
     p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True)
     p.add_argument("--root", type=Path, required=True, help="dataset root (holds <scene>/TrainSplit.txt)")
@@ -95,6 +172,49 @@ def build_parser() -> argparse.ArgumentParser:
     _add_dataset_args(p)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("eval", help="localization benchmark: map, localize point-only and point+line, evaluate")
+    p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True)
+    p.add_argument("--root", type=Path, default=None, help="dataset root (synthetic: generated under OUT when omitted)")
+    p.add_argument("--scenes", default=None, help="comma-separated scenes or 'all'")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--hloc", type=Path, default=None, help="hloc outputs, one folder per scene (sfm model, features, matches, pairs)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-point-matches", type=int, default=None, help="seeded random subset of N 2D-3D point matches per query")
+    p.add_argument("--preset", default="fast", choices=["fast", "paper"], help="mapping preset")
+    p.add_argument("--method", default="lipmap", choices=["lipmap", "lift"], help="line map method")
+    p.add_argument("--line-query", default=None, choices=["projection", "raycast"])
+    p.add_argument("--points", default="sift-n4096", help="built-in point preset (sift-n4096, sift-n2048, sift-n1024-fast)")
+    p.add_argument("--synth-preset", default="small", choices=["small", "default"])
+    p.add_argument("--pose-source", default="posetxt", choices=["posetxt", "dslam", "sfm"])
+    p.add_argument("--no-registration", action="store_true")
+    p.add_argument("--mapping-step", type=int, default=1, help="use every k-th mapping frame")
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("map", help="build a line map (linemap.h5, linemap.ply, planes.ply)")
+    p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True)
+    p.add_argument("--root", type=Path, required=True)
+    p.add_argument("--scene", required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--preset", default="fast", choices=["fast", "paper"])
+    p.add_argument("--method", default="lipmap", choices=["lipmap", "lift"])
+    p.add_argument("--lines", type=Path, default=None, help="2D lines made elsewhere (folder of WireframeGraph JSON / npz, or HDF5)")
+    p.add_argument("--pose-source", default="posetxt", choices=["posetxt", "dslam", "sfm"])
+    p.add_argument("--no-registration", action="store_true")
+    p.add_argument("--mapping-step", type=int, default=1)
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(func=cmd_map)
+
+    p = sub.add_parser("map-eval", help="mapping metrics M1 / M2 of a line map against a mesh or point cloud")
+    p.add_argument("--linemap", type=Path, required=True)
+    p.add_argument("--gt", type=Path, default=None, help="GT mesh or point cloud (PLY)")
+    p.add_argument("--dataset", choices=["7scenes", "synthetic"])
+    p.add_argument("--root", type=Path)
+    p.add_argument("--scene")
+    p.add_argument("--pose-source", default="posetxt", choices=["posetxt", "dslam", "sfm"])
+    p.add_argument("--json", type=Path, default=None)
+    p.set_defaults(func=cmd_map_eval)
 
     for module, name in (("lipmap.datasets.synthetic", "synth"),):
         try:

@@ -92,7 +92,7 @@ def summary_markdown(results: dict, dataset: str, pose_source: str, notes: list[
         n = (pt or pl or {}).get("n_queries", 0)
         failed = f"{(pt or {}).get('n_failed', '-')} / {(pl or {}).get('n_failed', '-')}"
         prow = paper["scenes"].get(name.lower())
-        pcells = [(f"{v[0]} / {v[1]} / {v[2]}" if prow else "n/a") for v in ((prow or {}).get(c, [None] * 3) for c in cols)]
+        pcells = [(f"{v[0]:.1f} / {v[1]:.2f} / {v[2]:.1f}" if prow else "n/a") for v in ((prow or {}).get(c, [None] * 3) for c in cols)]
         if not prow:
             pcells = ["n/a"] * len(cols)
         lines.append(f"| {name} | {n} ({failed}) | {_fmt(pt)} | {_fmt(pl)} | " + " | ".join(pcells) + " |")

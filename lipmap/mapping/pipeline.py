@@ -1,0 +1,157 @@
+"""Mapping step: posed RGB-D views -> ``linemap.h5`` (+ ``linemap.ply``, ``planes.ply``), hloc-style.
+
+``map_scene(scene, out_dir, conf)`` runs, skipping what its artifacts already hold:
+    lines2d.h5      2D lines of the mapping views (LSD, or imported with ``lines_source``)
+    planes.h5       planar primitives after the joint line-plane optimization (method ``lipmap``)
+    linemap.h5      3D lines + tracks (+ the planes and edge->line table the line query needs)
+Method ``lift`` back-projects each 2D line with depth instead (the paper's Fig. 1 baseline).
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .. import logger
+from ..errors import InputError
+from .extract import ExtractConfig, build_tracks, extract_observations, merge_edges
+
+
+@dataclass
+class MappingConfig:
+    preset: str = "fast"
+    lines: str = "lsd"  # lipmap.lines2d preset
+    planes: str = "fast"  # lipmap.planes.optimize preset
+    line_weight: float = 0.1  # paper alpha_L
+    pixels_per_line: int = 1
+    group_loss: bool = False
+    line_start_frac: float = 0.0  # start the line term after this fraction of the iterations
+    extract: ExtractConfig = field(default_factory=ExtractConfig)
+    lift: str = "lift-merge-loose"  # lipmap.lift preset for method "lift"
+    seed: int = 0
+
+
+confs = {
+    "fast": MappingConfig(),
+    "paper": MappingConfig(preset="paper", planes="paper"),
+}
+
+
+def get_conf(conf) -> MappingConfig:
+    if conf is None:
+        return confs["fast"]
+    if isinstance(conf, str):
+        if conf not in confs:
+            raise InputError(f"unknown mapping preset {conf!r}; choose one of {', '.join(confs)}")
+        return confs[conf]
+    if isinstance(conf, dict):
+        return replace(confs[conf.get("preset", "fast")], **{k: v for k, v in conf.items() if k != "preset"})
+    return conf
+
+
+def _lines_by_view(lines_h5: Path, views) -> dict:
+    from ..lines2d import load_lines
+
+    return {v.name: load_lines(lines_h5, v.name) for v in views}
+
+
+def detect_or_import_lines(views, out_dir: Path, conf: MappingConfig, lines_source=None, overwrite=False) -> Path:
+    from ..lines2d import detect_lines, import_lines
+
+    out = out_dir / "lines2d.h5"
+    if lines_source is not None:
+        return import_lines(views, lines_source, out, overwrite=overwrite)
+    return detect_lines(views, out, conf.lines, overwrite=overwrite)
+
+
+def fit_planes_with_lines(scene, lines_by_view: dict, out_dir: Path, conf: MappingConfig, overwrite=False):
+    """Joint line-plane optimization; writes/reads ``planes.h5`` and ``planes.ply``. Returns Planes."""
+    from ..planes import io as pio
+    from ..planes.init import init_planes
+    from ..planes.optimize import get_conf as plane_conf
+    from ..planes.optimize import optimize_planes
+    from .supervision import LineSupervision
+
+    planes_h5 = out_dir / "planes.h5"
+    if planes_h5.exists() and not overwrite:
+        logger.info("Skipping plane optimization: %s exists.", planes_h5)
+        return pio.load_planes(planes_h5)
+    pconf = plane_conf(conf.planes)
+    planes = init_planes(scene.mapping, pconf)
+    sup = LineSupervision(lines_by_view, weight=conf.line_weight, pixels_per_line=conf.pixels_per_line,
+                          use_group=conf.group_loss, seed=conf.seed)
+    planes, history = optimize_planes(scene.mapping, planes, pconf, extra_loss=sup)
+    pio.save_planes(planes_h5, planes, attrs={"config": json.dumps(asdict(conf), default=str), "history": json.dumps(history, default=float)})
+    pio.export_planes_ply(out_dir / "planes.ply", planes)
+    return planes
+
+
+def lipmap_linemap(scene, planes, lines_by_view: dict, conf: MappingConfig, depth_by_view=None):
+    """Extraction, merging and tracks from optimized planes -> LineMap (with planes and edge_line)."""
+    from ..linemap import LineMap
+
+    planes = planes.detach()
+    corners = planes.corners().cpu().numpy().astype(np.float64)
+    obs = extract_observations(corners, scene.mapping, lines_by_view, conf.extract)
+    lines, obs_line, edge_line = merge_edges(corners, obs, conf.extract)
+    tracks_arr = build_tracks(lines, scene.mapping, lines_by_view, conf.extract, depth_by_view)
+    # evidence from extraction counts too (the pixel votes that produced the line)
+    ext = np.stack([obs_line, obs["view"], obs["line"]], 1)
+    ext = ext[ext[:, 0] >= 0]
+    tracks_arr = np.unique(np.concatenate([tracks_arr, ext]).astype(np.int64), axis=0) if len(ext) else tracks_arr
+    tracks = [[] for _ in range(len(lines))]
+    for l, vi, di in tracks_arr:
+        v = scene.mapping[vi]
+        tracks[l].append((v.name, int(di), lines_by_view[v.name][di]))
+    p = planes.numpy()
+    plane_dict = {"center": p["center"], "quaternion": p["quat"], "radii": p["radii"], "corners": corners,
+                  "edge_line": edge_line}
+    meta = {"method": "lipmap", "config": json.loads(json.dumps(asdict(conf), default=str)),
+            "n_observations": int(len(obs["plane"])), "n_planes": int(len(planes))}
+    return LineMap(lines, tracks, planes=plane_dict, metadata=meta)
+
+
+def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=None, overwrite: bool = False) -> Path:
+    """Build the line map of ``scene`` in ``out_dir``; returns the path of ``linemap.h5``."""
+    from ..linemap import LineMap
+
+    conf = get_conf(conf)
+    if method not in ("lipmap", "lift"):
+        raise InputError(f"unknown mapping method {method!r}; choose lipmap or lift")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    out = out_dir / "linemap.h5"
+    if out.exists() and not overwrite:
+        logger.info("Skipping mapping: %s exists.", out)
+        return out
+    t0 = time.time()
+    timings = {}
+    lines_h5 = detect_or_import_lines(scene.mapping, out_dir, conf, lines_source, overwrite)
+    lines_by_view = _lines_by_view(lines_h5, scene.mapping)
+    timings["lines2d_s"] = time.time() - t0
+    if method == "lift":
+        from ..lift import lift_linemap
+
+        t = time.time()
+        lm = lift_linemap(scene.mapping, lines_h5, conf.lift)
+        timings["lift_s"] = time.time() - t
+    else:
+        t = time.time()
+        planes = fit_planes_with_lines(scene, lines_by_view, out_dir, conf, overwrite)
+        timings["optimize_s"] = time.time() - t
+        t = time.time()
+        depth = {v.name: v.load_depth() for v in scene.mapping if v.depth_path is not None}
+        lm = lipmap_linemap(scene, planes, lines_by_view, conf, depth)
+        timings["extract_s"] = time.time() - t
+    timings["total_s"] = time.time() - t0
+    lm.metadata.update({"scene": scene.name, "dataset": scene.dataset, "pose_source": scene.pose_source,
+                        "timings": timings, "method": method})
+    lm.save(out)
+    lm.to_ply(out_dir / "linemap.ply")
+    n_img = lm.supports[:, 0] if len(lm) else np.zeros(0)
+    logger.info("Mapped %s with %s: %d lines (median %.0f views each) in %.1f s -> %s", scene.name, method, len(lm),
+                np.median(n_img) if len(n_img) else 0, timings["total_s"], out)
+    return out

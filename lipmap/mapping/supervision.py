@@ -1,0 +1,83 @@
+"""The line term of the joint line-plane optimization (paper Sec. 3.3), as a callback for the plane loop.
+
+Each training iteration samples pixels from the 1-pixel regions of the view's detected lines (one per
+line by default, as the reference code does), finds the first plane each pixel's ray hits and the edge
+that explains the line (no gradient), and returns the line loss of those edges (with gradient).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .assign import best_edges, first_hit_torch, line_regions, pixel_rays_world
+from .losses import line_loss
+
+
+class LineSupervision:
+    """``extra_loss(view, planes, iteration) -> weight * line loss`` for :func:`optimize_planes`.
+
+    Args:
+        lines_by_view: {view name: (N, 4) detected segments at the view's FULL resolution}.
+        weight: the paper's alpha_L (0.1).
+        pixels_per_line: region pixels sampled per line per iteration (>= 2 for the group loss).
+        use_group: add the paper's group loss (off in the reference code).
+        seed: sampling seed (combined with the iteration, so a resumed run samples the same pixels).
+    """
+
+    def __init__(self, lines_by_view: dict, weight: float = 0.1, pixels_per_line: int = 1, use_group: bool = False,
+                 group_weight: float = 10.0, seed: int = 0):
+        self.lines = {k: np.asarray(v, dtype=np.float64).reshape(-1, 4) for k, v in lines_by_view.items()}
+        self.weight = weight
+        self.pixels_per_line = max(1, pixels_per_line if not use_group else max(2, pixels_per_line))
+        self.use_group = use_group
+        self.group_weight = group_weight
+        self.seed = seed
+        self._regions = {}
+        self.last = {}
+
+    def _region(self, name, camera):
+        key = (name, camera.width, camera.height)
+        if key not in self._regions:
+            self._regions[key] = line_regions(self.lines[name], camera.width, camera.height)
+        return self._regions[key]
+
+    def __call__(self, view, planes, iteration: int, camera=None):
+        """Line loss of ``view`` (at ``camera``, the training resolution; default the view's)."""
+        camera = camera or view.camera
+        lines = self.lines.get(view.name)
+        corners = planes.corners()
+        zero = corners.sum() * 0
+        if lines is None or len(lines) == 0 or len(planes) == 0:
+            return zero
+        s = camera.width / view.camera.width
+        lines_s = lines * s  # exact in COLMAP's pixel convention
+        pix, li = self._region(view.name, camera)
+        if len(pix) == 0:
+            return zero
+        rng = np.random.default_rng([self.seed, iteration])
+        # sample k pixels per line: random keys, then the first k of each line after sorting
+        order = np.lexsort((rng.random(len(li)), li))
+        li_sorted = li[order]
+        rank = np.arange(len(li_sorted)) - np.searchsorted(li_sorted, li_sorted)
+        take = order[rank < self.pixels_per_line]
+        pix, li = pix[take], li[take]
+        o, d = pixel_rays_world(pix, view.cam_from_world, camera)
+        k, _ = first_hit_torch(corners, torch.as_tensor(o, dtype=corners.dtype, device=corners.device),
+                               torch.as_tensor(d, dtype=corners.dtype, device=corners.device))
+        hit = (k >= 0).cpu().numpy()
+        if not hit.any():
+            return zero
+        plane = k.cpu().numpy()[hit]
+        li = li[hit]
+        edge, ang, dist, _ = best_edges(corners.detach().cpu().numpy().astype(np.float64), plane, lines_s[li],
+                                        view.cam_from_world, camera)
+        # Assignments whose best edge is hopelessly far are noise (another surface's edge): skip them.
+        ok = np.isfinite(dist) & (dist < 0.1 * max(camera.width, camera.height))
+        if not ok.any():
+            return zero
+        loss = line_loss(corners, plane[ok], edge[ok], lines_s[li[ok]], li[ok], view.cam_from_world, camera,
+                         use_group=self.use_group, group_weight=self.group_weight)
+        self.last = {"n_assign": int(ok.sum()), "loss": float(loss.detach())}
+        # distances are in training-resolution pixels; express them in full-resolution pixels so the
+        # balance with the plane loss does not change with the training scale
+        return self.weight * loss / s

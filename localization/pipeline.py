@@ -1,0 +1,285 @@
+"""Per-scene localization benchmark: map (if needed), 2D-3D points, point-only pose, line query,
+point+line pose, evaluation. Every step caches its artifact; per-query results go to a journal so an
+interrupted run resumes where it stopped.
+
+    OUT/<dataset>/<scene>/
+        linemap.h5, lines2d.h5, planes.h5 ...   mapping (lipmap.mapping.pipeline)
+        points/                                 SIFT features, pairs, matches, sfm model (built-in)
+        lines2d_query.h5                        2D lines of the queries (same detector)
+        queries-<config digest>.jsonl           per-query journal (resume)
+        results_point.txt, results_point_line.txt   hloc format (name qw qx qy qz tx ty tz)
+        results.json                            per-query errors, inliers, timings; summary
+    OUT/<dataset>/results.json, summary.md      all scenes, paper table beside ours
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+from tqdm import tqdm
+
+from lipmap import InputError, logger
+from lipmap.imageio import write_text_atomic
+
+from . import evaluate as ev
+from .estimate import PointLinePoseConf, PointPoseConf, estimate_pose_point_line, estimate_pose_points, subsample_matches
+from .linequery import LineQuery, LineQueryConfig
+
+
+@dataclass
+class LocalizationConfig:
+    seed: int = 0
+    max_point_matches: Optional[int] = None  # seeded random subset per query (same for both methods)
+    points: str = "sift-n4096"  # localization.points preset (built-in SIFT)
+    retrieval: str = "vlad64"  # localization.retrieval preset
+    num_retrieved: int = 10
+    point_pose: PointPoseConf = field(default_factory=PointPoseConf)
+    point_line_pose: PointLinePoseConf = field(default_factory=PointLinePoseConf)
+    line_query: LineQueryConfig = field(default_factory=LineQueryConfig)
+    line_iters: int = 2  # line query -> refine, repeated with the refined pose
+    mapping: str = "fast"  # lipmap.mapping.pipeline preset
+    map_method: str = "lipmap"
+
+    def digest(self) -> str:
+        d = asdict(self)
+        return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:10]
+
+
+# ----------------------------------------------------------------------------------------------
+# point sources
+# ----------------------------------------------------------------------------------------------
+class BuiltinPoints:
+    """SIFT + known-pose triangulation + VLAD retrieval, all cached under ``out_dir``."""
+
+    def __init__(self, scene, out_dir: Path, conf: LocalizationConfig, overwrite=False):
+        from . import points as pts
+        from .hloc_io import ModelIndex, pairs_by_query, read_pairs, read_sfm
+        from .retrieval import confs as rconfs
+
+        pconf = pts.confs[conf.points]
+        rconf = replace(rconfs[conf.retrieval], num_retrieved=conf.num_retrieved, seed=conf.seed)
+        t = time.time()
+        self.map = pts.build_point_map(scene.mapping, out_dir, pconf, overwrite)
+        q = pts.match_queries(scene.query, [v.name for v in scene.mapping], self.map["features"], out_dir, pconf,
+                              retrieval=rconf, overwrite=overwrite)
+        self.timings = {"build_s": time.time() - t}
+        self.features, self.matches = self.map["features"], q["matches"]
+        self.retrieved = pairs_by_query(read_pairs(q["pairs"]))
+        self.model = ModelIndex(read_sfm(self.map["sfm"]), self.map["sfm"])
+        self._pts = pts
+
+    def matches_for(self, name: str):
+        return self._pts.point_matches_for_query(name, self.retrieved.get(name, []), self.features, self.matches, self.model)
+
+
+class HlocPoints:
+    """hloc outputs for one scene: an SfM model folder, features.h5, matches.h5 and a query pairs file."""
+
+    def __init__(self, folder: Path):
+        from .hloc_io import ModelIndex, read_pairs, read_sfm
+
+        folder = Path(folder)
+        if not folder.is_dir():
+            raise InputError("hloc output folder for this scene is missing", folder)
+        sfm = [p.parent for p in folder.rglob("images.bin")]
+        h5s = sorted(folder.glob("*.h5"))
+        feats = [p for p in h5s if "match" not in p.name]
+        matches = [p for p in h5s if "match" in p.name]
+        pairs = sorted(p for p in folder.glob("*.txt") if "pairs" in p.name or "query" in p.name)
+        for what, found in (("an SfM model (images.bin)", sfm), ("a features .h5", feats), ("a matches .h5", matches),
+                            ("a query pairs .txt", pairs)):
+            if len(found) != 1:
+                raise InputError(f"expected exactly one {what} in the hloc folder, found {len(found)}: "
+                                 f"{[p.name for p in found]}", folder)
+        self.sfm, self.features, self.matches, self.pairs = sfm[0], feats[0], matches[0], read_pairs(pairs[0])
+        self.model = ModelIndex(read_sfm(self.sfm), self.sfm)
+        self.timings = {}
+
+    def matches_for(self, name: str):
+        from .hloc_io import point_matches_from_hloc
+
+        return point_matches_from_hloc(name, self.sfm, self.features, self.matches, self.pairs, model=self.model)
+
+
+# ----------------------------------------------------------------------------------------------
+# per-query localization
+# ----------------------------------------------------------------------------------------------
+def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: LocalizationConfig) -> dict:
+    """Point-only and point+line poses of one query. Never raises: failures are recorded."""
+    rec = {"name": name, "point": {"success": False}, "point+line": {"success": False}}
+    t0 = time.perf_counter()
+    try:
+        pm = points.matches_for(name)
+    except InputError as e:
+        rec["error"] = str(e)
+        return rec
+    idx = subsample_matches(len(pm), conf.max_point_matches, conf.seed, name)
+    pm = pm.subset(idx)
+    est = estimate_pose_points(pm.p2d, pm.p3d, camera, replace(conf.point_pose, seed=conf.seed))
+    t_point = (time.perf_counter() - t0) * 1000
+    rec["point"] = {"success": bool(est["success"]), "n_matches": len(pm), "n_inliers": int(est["n_inliers"]),
+                    "ms": t_point, "cam_from_world": _T(est["cam_from_world"] if est["success"] else None)}
+    if not est["success"]:
+        rec["point"]["reason"] = est.get("reason")
+        rec["point+line"] = {"success": False, "reason": "no point-only pose to start from", "ms": t_point}
+        return rec
+    t1 = time.perf_counter()
+    T = est["cam_from_world"]
+    n_lm, n_li, used_lines = 0, 0, False
+    plconf = replace(conf.point_line_pose, seed=conf.seed)
+    for _ in range(max(1, conf.line_iters)):
+        m = lq.match(lines2d, T, camera, conf.line_query)
+        n_lm = len(m["line_idx"])
+        r = estimate_pose_point_line(pm.p2d, pm.p3d, m["lines2d"], m["lines3d"], camera, initial=T, conf=plconf)
+        if not r["success"]:
+            break
+        T, n_li, used_lines = r["cam_from_world"], r["n_line_inliers"], True
+    t_line = (time.perf_counter() - t1) * 1000
+    rec["point+line"] = {"success": True, "used_lines": used_lines, "n_line_matches": n_lm, "n_line_inliers": n_li,
+                         "n_query_lines": int(len(lines2d)), "ms": t_point + t_line, "line_stage_ms": t_line,
+                         "cam_from_world": _T(T)}
+    return rec
+
+
+def _T(T):
+    return None if T is None else np.asarray(T).tolist()
+
+
+def _read_journal(path: Path) -> dict:
+    done = {}
+    if not path.exists():
+        return done
+    for line in path.read_text().splitlines():
+        try:
+            r = json.loads(line)
+            done[r["name"]] = r
+        except (json.JSONDecodeError, KeyError):
+            continue  # a line cut by an interrupted write: that query is redone
+    return done
+
+
+class _Journal:
+    def __init__(self, path: Path):
+        self.f = open(path, "a")
+
+    def write(self, rec: dict):
+        self.f.write(json.dumps(rec) + "\n")
+        self.f.flush()
+        os.fsync(self.f.fileno())
+
+    def close(self):
+        self.f.close()
+
+
+def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, lines_source=None, overwrite=False) -> dict:
+    """Run the whole per-scene pipeline and write the scene's results; returns the scene summary."""
+    from lipmap.linemap import LineMap
+    from lipmap.lines2d import detect_lines, load_lines
+    from lipmap.mapping.pipeline import get_conf as map_conf
+    from lipmap.mapping.pipeline import map_scene
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if not scene.query:
+        raise InputError(f"scene {scene.name} has no query views", scene.root / "TestSplit.txt")
+    t0 = time.time()
+    mconf = replace(map_conf(conf.mapping), seed=conf.seed)
+    linemap_path = map_scene(scene, out_dir, mconf, conf.map_method, lines_source, overwrite)
+    t_map = time.time() - t0
+    linemap = LineMap.load(linemap_path)
+    lq = LineQuery.from_linemap(linemap)
+    points = HlocPoints(Path(hloc_dir) / scene.name) if hloc_dir else BuiltinPoints(scene, out_dir / "points", conf, overwrite)
+    qlines_h5 = detect_lines(scene.query, out_dir / "lines2d_query.h5", mconf.lines, overwrite=overwrite)
+
+    journal_path = out_dir / f"queries-{conf.digest()}.jsonl"
+    if overwrite and journal_path.exists():
+        journal_path.unlink()
+    done = _read_journal(journal_path)
+    if done:
+        logger.info("Resuming %s: %d of %d queries already localized (%s).", scene.name, len(done), len(scene.query), journal_path.name)
+    journal = _Journal(journal_path)
+    try:
+        for v in tqdm(scene.query, desc=f"localize {scene.name}"):
+            if v.name in done:
+                continue
+            try:
+                lines2d = load_lines(qlines_h5, v.name)
+            except Exception as e:  # noqa: BLE001 - a bad query must not stop the others
+                lines2d = np.zeros((0, 4))
+                logger.warning("No lines for query %s: %s", v.name, e)
+            try:
+                rec = localize_query(v.name, v.camera, points, lines2d, lq, conf)
+            except Exception as e:  # noqa: BLE001
+                logger.warning("Query %s failed: %s", v.name, e)
+                rec = {"name": v.name, "point": {"success": False}, "point+line": {"success": False}, "error": repr(e)}
+            journal.write(rec)
+            done[v.name] = rec
+    finally:
+        journal.close()
+    return write_scene_results(scene, out_dir, done, conf, linemap, {"map_s": t_map, **points.timings})
+
+
+def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConfig, linemap, timings) -> dict:
+    from .hloc_io import write_results
+
+    gt = scene.query_gt
+    summary, per_query = {}, {}
+    for key, fname in (("point", "results_point.txt"), ("point+line", "results_point_line.txt")):
+        est = {n: (np.array(r[key]["cam_from_world"]) if r[key].get("success") else None) for n, r in recs.items()}
+        write_results(out_dir / fname, {n: T for n, T in est.items() if T is not None})
+        errs = ev.query_errors(est, gt)
+        ms = [r[key]["ms"] for r in recs.values() if r[key].get("ms") is not None]
+        summary[key] = ev.summarize(errs, ms)
+        for n, (t, r) in errs.items():
+            per_query.setdefault(n, {})[key] = {"t_cm": t * 100 if math.isfinite(t) else None,
+                                                 "R_deg": r if math.isfinite(r) else None,
+                                                 **{k: v for k, v in recs.get(n, {}).get(key, {}).items() if k != "cam_from_world"}}
+    line_ms = [r["point+line"]["line_stage_ms"] for r in recs.values() if "line_stage_ms" in r["point+line"]]
+    summary["point+line"]["median_ms_line_stage"] = float(np.median(line_ms)) if line_ms else None
+    summary["point+line"]["median_line_inliers"] = float(np.median([r["point+line"].get("n_line_inliers", 0) for r in recs.values()]))
+    out = {
+        "scene": scene.name,
+        "dataset": scene.dataset,
+        "pose_source": scene.pose_source,
+        "n_map_lines": len(linemap),
+        "config": json.loads(json.dumps(asdict(conf), default=str)),
+        "timings": timings,
+        "summary": summary,
+        "queries": per_query,
+        "errors": {n: r["error"] for n, r in recs.items() if "error" in r},
+    }
+    write_text_atomic(out_dir / "results.json", json.dumps(out, indent=1, default=float))
+    return out
+
+
+def run_eval(dataset: str, root, scenes, out, conf: LocalizationConfig, hloc_dir=None, pose_source="posetxt",
+             register_depth=True, overwrite=False, mapping_step: int = 1) -> Path:
+    """Localize every scene and write OUT/<dataset>/results.json and summary.md; returns the results path."""
+    from lipmap.datasets import load_scene
+
+    out = Path(out) / dataset
+    all_res = {"dataset": dataset, "pose_source": pose_source, "config": json.loads(json.dumps(asdict(conf), default=str)),
+               "scenes": {}, "scene_details": {}}
+    failed_scenes = {}
+    for name in scenes:
+        scene = load_scene(dataset, root, name, pose_source=pose_source, register_depth=register_depth, mapping_step=mapping_step)
+        logger.info("Scene %s: %d mapping, %d query views (poses: %s).", name, len(scene.mapping), len(scene.query), pose_source)
+        res = localize_scene(scene, out / name, conf, hloc_dir, overwrite=overwrite)
+        all_res["scenes"][name] = res["summary"]
+        all_res["scene_details"][name] = {"n_map_lines": res["n_map_lines"], "timings": res["timings"]}
+        s = res["summary"]
+        logger.info("%s point-only: %s | point+line: %s", name, ev._fmt(s["point"]), ev._fmt(s["point+line"]))
+    path = out / "results.json"
+    write_text_atomic(path, json.dumps(all_res, indent=1, default=float))
+    notes = [f"Mapping: {conf.map_method} ({conf.mapping} preset); points: "
+             + ("hloc files" if hloc_dir else f"built-in {conf.points} + {conf.retrieval} top-{conf.num_retrieved}")
+             + (f"; point matches limited to {conf.max_point_matches} per query (seed {conf.seed})" if conf.max_point_matches else "")]
+    write_text_atomic(out / "summary.md", ev.summary_markdown(all_res, dataset, pose_source, notes))
+    return path
