@@ -122,15 +122,26 @@ class LineQuery:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         proj, _ = geo.project_segments(self.lines[vis], T, camera)
         qs = geo.as_segments2d(q)
+        # Angle test first, as one matrix product of unit directions; the other measures are then
+        # computed on the few surviving pairs only (a query has ~400 lines, a view ~1000 map lines).
+        dq = qs[:, 1] - qs[:, 0]
+        dp = proj[:, 1] - proj[:, 0]
+        dq = dq / np.maximum(np.linalg.norm(dq, axis=1, keepdims=True), 1e-9)
+        dp = dp / np.maximum(np.linalg.norm(dp, axis=1, keepdims=True), 1e-9)
+        qi, pj = np.nonzero(np.abs(dq @ dp.T) >= np.cos(np.radians(conf.max_angle_deg)))
+        if len(qi) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
         with np.errstate(invalid="ignore"):
-            ang = geo.pairwise_angle_distance(qs, proj)  # (Nq, Nv)
-            dist = geo.pairwise_perpendicular_distance(qs, proj, "max")
-            ov = geo.pairwise_overlap_ratio(proj, qs).T  # overlap of projected line on query line
-        ok = (ang <= np.radians(conf.max_angle_deg)) & (dist <= conf.max_dist_px) & (ov >= conf.min_overlap)
-        score = np.where(ok, dist + 10 * np.degrees(ang) / max(conf.max_angle_deg, 1e-9), np.inf)
-        best = np.argmin(score, axis=1)
-        has = np.isfinite(score[np.arange(len(q)), best])
-        return np.flatnonzero(has), vis[best[has]]
+            ang = geo.angle_distance(qs[qi], proj[pj])
+            dist = geo.perpendicular_distance(qs[qi], proj[pj], "max")
+            ov = geo.overlap_ratio(proj[pj], qs[qi])  # overlap of the projected line on the query line
+        ok = (dist <= conf.max_dist_px) & (ov >= conf.min_overlap)
+        qi, pj = qi[ok], pj[ok]
+        score = dist[ok] + 10 * np.degrees(ang[ok]) / max(conf.max_angle_deg, 1e-9)
+        order = np.lexsort((score, qi))  # best candidate first within each query line
+        qi, pj = qi[order], pj[order]
+        first = np.r_[True, qi[1:] != qi[:-1]] if len(qi) else np.zeros(0, bool)
+        return qi[first], vis[pj[first]]
 
     def _verify(self, lines2d, cand_q, cand_l, T, camera, conf):
         if len(cand_q) == 0:
