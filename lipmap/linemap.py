@@ -486,4 +486,32 @@ def read_ply_lines(path) -> np.ndarray:
     return verts[edges].astype(np.float64)
 
 
-__all__ = ["LineMap", "Observation", "write_ply_lines", "read_ply_lines"]
+def add_linemap_export_parser(subparsers):
+    """`linemap-export`: linemap.h5 -> PLY and/or LIMAP finaltracks (or LIMAP -> linemap.h5)."""
+    p = subparsers.add_parser("linemap-export", help="export a line map to PLY / LIMAP tracks, or import LIMAP tracks")
+    p.add_argument("linemap", type=Path, help="linemap.h5, or a LIMAP folder holding finaltracks/")
+    p.add_argument("--ply", type=Path, help="write the lines as a PLY (vertices + edges)")
+    p.add_argument("--limap", type=Path, help="write LIMAP finaltracks/ and image_list.txt into this folder")
+    p.add_argument("--h5", type=Path, help="write linemap.h5 (e.g. after reading LIMAP tracks)")
+    p.add_argument("--image-list", type=Path, help="LIMAP image list when reading tracks (default: beside them)")
+    p.set_defaults(func=cli_linemap_export)
+    return p
+
+
+def cli_linemap_export(args):
+    path = Path(args.linemap)
+    lm = LineMap.from_limap(path, args.image_list) if path.is_dir() else LineMap.load(path)
+    if not (args.ply or args.limap or args.h5):
+        raise InputError("nothing to do: give --ply, --limap and/or --h5")
+    if args.ply:
+        lm.to_ply(args.ply)
+    if args.limap:
+        lm.to_limap(args.limap)
+    if args.h5:
+        lm.save(args.h5)
+    logger.info("Exported %d lines.", len(lm))
+    return lm
+
+
+__all__ = ["LineMap", "Observation", "write_ply_lines", "read_ply_lines", "add_linemap_export_parser",
+           "cli_linemap_export"]

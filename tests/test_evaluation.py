@@ -182,3 +182,22 @@ def test_m2_lipschitz_shortcut_is_exact():
         ratio = (d <= t / 1000).mean(1)
         assert res[f"R@{t}mm"] == pytest.approx((L * ratio).sum(), rel=1e-12)
         assert res[f"P@{t}mm"] == pytest.approx(100 * np.mean(ratio > 0))
+
+
+def test_cli_map_eval(tmp_path, capsys):
+    import argparse
+
+    from lipmap.evaluation import add_map_eval_parser
+
+    parser = argparse.ArgumentParser()
+    add_map_eval_parser(parser.add_subparsers())
+    LineMap(top_face_lines()).save(tmp_path / "linemap.h5")
+    BOX.export(tmp_path / "box.ply")
+    args = parser.parse_args(["map-eval", str(tmp_path / "linemap.h5"), "--gt", str(tmp_path / "box.ply"),
+                              "--thresholds", "0.01,0.05", "--out", str(tmp_path / "m.json")])
+    res = args.func(args)
+    assert res["gt"]["kind"] == "mesh" and res["M1"]["line"]["prec@0.01"] == 1.0
+    assert json.loads((tmp_path / "m.json").read_text())["n_lines"] == 3
+    with pytest.raises(InputError):
+        args = parser.parse_args(["map-eval", str(tmp_path / "linemap.h5")])
+        args.func(args)

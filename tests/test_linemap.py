@@ -204,3 +204,24 @@ class TestLimap:
         (d / "track_2.txt").write_text("")
         with pytest.raises(InputError, match="gaps"):
             LineMap.from_limap(d, image_list=["a.png"])
+
+
+def test_cli_export(tmp_path):
+    import argparse
+
+    from lipmap.linemap import add_linemap_export_parser
+
+    parser = argparse.ArgumentParser()
+    add_linemap_export_parser(parser.add_subparsers())
+    m = make_map(4)
+    m.save(tmp_path / "linemap.h5")
+    args = parser.parse_args(["linemap-export", str(tmp_path / "linemap.h5"), "--ply", str(tmp_path / "l.ply"),
+                              "--limap", str(tmp_path / "lim")])
+    args.func(args)
+    np.testing.assert_allclose(read_ply_lines(tmp_path / "l.ply"), m.lines, atol=1e-6)
+    args = parser.parse_args(["linemap-export", str(tmp_path / "lim"), "--h5", str(tmp_path / "back.h5")])
+    args.func(args)
+    assert_same(m, LineMap.load(tmp_path / "back.h5"))
+    with pytest.raises(InputError):
+        args = parser.parse_args(["linemap-export", str(tmp_path / "linemap.h5")])
+        args.func(args)
