@@ -179,6 +179,14 @@ class TestTorchMeasures:
         assert torch.autograd.gradcheck(lambda x: G.perpendicular_distance(x, b, "mean"), (a,))
         assert torch.autograd.gradcheck(lambda x: G.endpoint_distance(x, b), (a,))
 
+    def test_align_and_project_segments_torch(self):
+        a = torch.tensor([[[5.0, 0.0], [0.0, 0.0]]], dtype=torch.float64)
+        b = torch.tensor([[0.0, 0.1], [5.0, 0.1]], dtype=torch.float64)
+        np.testing.assert_allclose(G.align_endpoints(a, b)[0].numpy(), [[0, 0], [5, 0]])
+        seg = torch.tensor([[[0.1, 0.2, 2.0], [0.5, -0.3, 3.0]]], dtype=torch.float64, requires_grad=True)
+        T = make_T(rot_z90(), [0.1, 0.2, 0.3])
+        assert torch.autograd.gradcheck(lambda s: G.project_segments(s, T, CAM)[0], (seg,))
+
     def test_zero_angle_gradient_finite(self):
         a = torch.tensor([[0.0, 0.0], [10.0, 0.0]], requires_grad=True)
         b = torch.tensor([[0.0, 1.0], [10.0, 1.0]])
