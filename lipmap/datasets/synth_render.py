@@ -105,17 +105,21 @@ class RenderScene:
             cosl = self.normals @ (ldir / np.linalg.norm(ldir))
             front += k * np.clip(cosl, 0, None)
             back += k * np.clip(-cosl, 0, None)
-        dn = np.einsum("ij,ij->i", self.normals[s], d)
-        light = np.where(dn > 0, back[s], front[s]).astype(np.float32)
-        albedo = self.plain_color[s]
+        dn = np.einsum("ij,ij->i", np.take(self.normals, s, axis=0), d)
+        light = np.where(dn > 0, np.take(back, s), np.take(front, s)).astype(np.float32)
+        albedo = np.take(self.plain_color, s, axis=0)
         textured = np.flatnonzero(~self.plain[s])
         if len(textured):
             st = s[textured]
             dt, tt = d[textured], t[hit[textured]]
-            # (u, v) of the hit = (center - origin) . axis + t * (d . axis); the first term per surface
+            # (u, v) of the hit = (center - origin) . axis + t * (d . axis); the first term per surface.
+        # np.take: several times faster than fancy indexing for these row gathers
             rel = center - self.origins
-            u = (rel * self.u_axes).sum(1)[st] + tt * np.einsum("ij,ij->i", dt, self.u_axes[st])
-            v = (rel * self.v_axes).sum(1)[st] + tt * np.einsum("ij,ij->i", dt, self.v_axes[st])
+            uv = []
+            for axes in (self.u_axes, self.v_axes):
+                at = np.take(axes, st, axis=0)
+                uv.append(np.take((rel * axes).sum(1), st) + tt * np.einsum("ij,ij->i", dt, at))
+            u, v = uv
             dnorm = np.sqrt(np.einsum("ij,ij->i", dt, dt))
             cos = np.abs(dn[textured]) / dnorm
             footprint = tt * dnorm * pixel_angle / np.sqrt(np.maximum(cos, 0.05)) * self.texels_per_m

@@ -254,22 +254,21 @@ class TextureAtlas:
 
     def _bilinear(self, sid: np.ndarray, lev: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         off, w, h = self.table[sid, lev].T
-        scale = self.res / np.exp2(lev)
+        scale = (self.res / np.exp2(lev)).astype(np.float32)
         # level-l texel (c, r) has its centre at ((c + 0.5), (r + 0.5)) * 2**l / res; edges clamp
-        x = np.clip(u * scale - 0.5, 0, w - 1)
-        y = np.clip(v * scale - 0.5, 0, h - 1)
+        x = np.clip(u * scale - 0.5, 0, w - 1).astype(np.float32)
+        y = np.clip(v * scale - 0.5, 0, h - 1).astype(np.float32)
         x0 = np.minimum(x.astype(np.int64), np.maximum(w - 2, 0))
         y0 = np.minimum(y.astype(np.int64), np.maximum(h - 2, 0))
-        fx = (x - x0).astype(np.float32)[:, None]
-        fy = (y - y0).astype(np.float32)[:, None]
-        x1 = np.minimum(x0 + 1, w - 1)
-        y1 = np.minimum(y0 + 1, h - 1)
+        fx = (x - x0)[:, None]
+        fy = (y - y0)[:, None]
+        dx = np.minimum(x0 + 1, w - 1) - x0
+        dy = (np.minimum(y0 + 1, h - 1) - y0) * w
+        i00 = off + y0 * w + x0
         t = self.texels
-        a = t[off + y0 * w + x0].astype(np.float32)
-        b = t[off + y0 * w + x1].astype(np.float32)
-        c = t[off + y1 * w + x0].astype(np.float32)
-        d = t[off + y1 * w + x1].astype(np.float32)
-        return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
+        a, b, c, d = (np.take(t, i, axis=0).astype(np.float32) for i in (i00, i00 + dx, i00 + dy, i00 + dy + dx))
+        top = a + (b - a) * fx
+        return top + (c + (d - c) * fx - top) * fy
 
     def sample(self, sid: np.ndarray, u: np.ndarray, v: np.ndarray, lod: np.ndarray) -> np.ndarray:
         """Trilinear RGB (N, 3) in [0, 1] of textured surfaces ``sid`` (N,) at metric (u, v) (N,).
