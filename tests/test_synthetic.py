@@ -103,6 +103,8 @@ class TestLayout:
             generate_scene(synthetic_root, seed=3, preset="default")
         with pytest.raises(InputError, match="unknown synthetic preset"):
             generate_scene(synthetic_root, seed=3, preset="huge")
+        with pytest.raises(InputError, match="non-negative"):
+            generate_scene(synthetic_root, seed=-1)
 
 
 class TestDeterminism:
@@ -163,9 +165,11 @@ class TestGeometry:
             r, c = rng.integers(0, camera.height, 300), rng.integers(0, camera.width, 300)
             d_cam = rays[r, c]  # through pixel centres (c + 0.5, r + 0.5)
             center = -T[:3, :3].T @ T[:3, 3]
-            loc, idx, _ = ray.intersects_location(np.tile(center, (len(r), 1)), d_cam @ T[:3, :3],
-                                                  multiple_hits=False)
+            d_world = d_cam @ T[:3, :3]
+            loc, idx, tri = ray.intersects_location(np.tile(center, (len(r), 1)), d_world, multiple_hits=False)
             assert len(idx) == len(r)
+            # every surface is seen from its front: mesh normals (winding) point into the room
+            assert (np.einsum("ij,ij->i", mesh.face_normals[tri], d_world[idx]) < 0).all()
             z = (loc @ T[:3, :3].T + T[:3, 3])[:, 2]
             errs.append(np.abs(z - depth[r[idx], c[idx]]))
         errs = np.concatenate(errs)

@@ -241,8 +241,8 @@ def build_room(rng: np.random.Generator) -> Room:
             wall_mats.append(_plaster_mat(rng))
     for w, m in zip(walls, wall_mats):
         obj = room.new_object()
-        # u along the wall, v up: u x v = along x z = inward normal for these walls
-        room.add_quad(w.origin, w.along, Z_UP, w.length, H, m, obj, "wall")
+        # from the top corner: u along the wall, v down, so u x v = the inward normal (the visible side)
+        room.add_quad(w.origin + H * Z_UP, w.along, -Z_UP, w.length, H, m, obj, "wall")
     room.add_quad((0, 0, 0), (1, 0, 0), (0, 1, 0), Lx, Ly, _floor_mat(rng), room.new_object(), "floor")
     if rng.random() < 0.6:
         ceil = Material("tiles", _rgb(rng, 0.8, 0.95), _rgb(rng, 0.4, 0.6),

@@ -225,13 +225,15 @@ def _clean(scene_dir: Path):
 
 
 def _surfaces_json(room: Room) -> str:
+    """The planar rectangles of the mesh (mesh face f belongs to surface f // 2), one per line."""
     rows = []
     for i, s in enumerate(room.surfaces):
-        rows.append({"id": i, "label": s.label, "object_id": s.object_id, "plain": s.material.plain,
-                     "material": s.material.kind, "origin": np.round(s.origin, 6).tolist(),
-                     "u_axis": s.u_axis.tolist(), "v_axis": s.v_axis.tolist(),
-                     "size": [round(s.size[0], 6), round(s.size[1], 6)], "normal": s.normal.tolist()})
-    return json.dumps({"room_size": list(room.size), "surfaces": rows}, indent=1)
+        row = {"id": i, "label": s.label, "object_id": s.object_id, "plain": s.material.plain,
+               "material": s.material.kind, "origin": np.round(s.origin, 6).tolist(),
+               "u_axis": np.round(s.u_axis, 6).tolist(), "v_axis": np.round(s.v_axis, 6).tolist(),
+               "size": [round(s.size[0], 6), round(s.size[1], 6)], "normal": np.round(s.normal, 6).tolist()}
+        rows.append(json.dumps(row, separators=(",", ":")))
+    return '{"room_size": %s, "surfaces": [\n%s\n]}\n' % (json.dumps(list(room.size)), ",\n".join(rows))
 
 
 def generate_scene(out_root, seed: int = 0, preset="small", overwrite: bool = False) -> Path:
@@ -242,6 +244,8 @@ def generate_scene(out_root, seed: int = 0, preset="small", overwrite: bool = Fa
     """
     cfg = get_config(preset)
     seed = int(seed)
+    if seed < 0:
+        raise InputError(f"seed must be a non-negative integer, got {seed}")
     scene_dir = Path(out_root) / f"room-s{seed}"
     marker = scene_dir / "scene.json"
     if marker.exists() and not overwrite:
