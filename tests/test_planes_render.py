@@ -1,0 +1,188 @@
+"""Fast plane renderer vs. its all-pairs twin (values and gradients), lambda schedule, edge cases."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from lipmap.planes import Planes, lambda_schedule, rasterize_planes, render_planes
+from lipmap.planes._torch_impl import _render_all_pairs
+from lipmap.planes.primitives import SPLAT_MARGIN, WEIGHT_EPS
+from lipmap.scene import Camera
+
+INTR = (60.0, 60.0, 32.0, 24.0)
+W, H = 64, 48
+
+
+def random_planes(K, seed=1, dtype=torch.float64):
+    """Planes 1-3 m in front of a camera at the origin, roughly facing it, random sizes (overlaps)."""
+    g = torch.Generator().manual_seed(seed)
+    c = torch.rand(K, 3, generator=g, dtype=torch.float64) * torch.tensor([2.0, 1.5, 2.0]) + torch.tensor([-1, -0.75, 1.0])
+    nrm = torch.randn(K, 3, generator=g, dtype=torch.float64) * 0.4 + torch.tensor([0, 0, -1.0])
+    p = Planes.from_normals(c.numpy(), nrm.numpy(), np.ones(K), dtype=dtype)
+    radii = (torch.rand(K, 4, generator=g, dtype=torch.float64) * 0.25 + 0.02).to(dtype)
+    return Planes(p.center, p.quat, radii)
+
+
+def occlusion_scene(dtype=torch.float64):
+    """A big back wall, a smaller plane in front of it (occlusion), two partially overlapping tilted
+    planes, and a plane seen at a grazing angle; all straddle pixel edges so the fall-off matters."""
+    centers = [[0, 0, 3.0], [0.2, 0.1, 2.0], [-0.5, -0.3, 1.5], [-0.35, -0.2, 1.6], [0.6, -0.4, 2.5]]
+    normals = [[0, 0, -1.0], [0.1, 0.05, -1], [0.3, 0.2, -1], [-0.2, 0.3, -1], [1.0, 0.0, -0.3]]
+    radii = [[2.0, 2.0, 2.0, 2.0], [0.3, 0.2, 0.25, 0.35], [0.2, 0.25, 0.15, 0.2], [0.22, 0.1, 0.2, 0.18], [0.3, 0.2, 0.3, 0.2]]
+    p = Planes.from_normals(np.array(centers), np.array(normals), np.ones(5), dtype=dtype)
+    return Planes(p.center, p.quat, torch.tensor(radii, dtype=dtype).clamp(max=0.5))
+
+
+def _both(planes, lam, T=None, tile_size=8):
+    T = torch.eye(4, dtype=planes.dtype) if T is None else T
+    P1 = [t.clone().requires_grad_() for t in planes.tensors()]
+    P2 = [t.clone().requires_grad_() for t in planes.tensors()]
+    out = rasterize_planes(*P1, T, INTR, W, H, lam, tile_size=tile_size)
+    ref = _render_all_pairs(*P2, T, INTR, W, H, lam)
+    return P1, P2, out, ref
+
+
+class TestAgreementWithTwin:
+    @pytest.mark.parametrize("lam", [36.8, 300.0, 1500.0])
+    @pytest.mark.parametrize("scene", ["random", "occlusion"])
+    def test_values_and_gradients_float64(self, lam, scene):
+        planes = random_planes(60) if scene == "random" else occlusion_scene()
+        P1, P2, out, (d2, n2, a2) = _both(planes, lam)
+        assert out.n_pairs > 0
+        # identical arithmetic on the selected pairs: agreement to float64 round-off
+        torch.testing.assert_close(out.depth, d2, atol=1e-10, rtol=0)
+        torch.testing.assert_close(out.normal, n2, atol=1e-10, rtol=0)
+        torch.testing.assert_close(out.alpha, a2, atol=1e-10, rtol=0)
+        g = torch.Generator().manual_seed(0)
+        v_depth = torch.randn(d2.shape, generator=g, dtype=d2.dtype)
+        v_normal = torch.randn(n2.shape, generator=g, dtype=d2.dtype)
+        g1 = torch.autograd.grad((out.depth * v_depth).sum() + (out.normal * v_normal).sum(), P1)
+        g2 = torch.autograd.grad((d2 * v_depth).sum() + (n2 * v_normal).sum(), P2)
+        for a, b, name in zip(g1, g2, ("center", "quat", "radii")):
+            assert b.abs().max() > 0, name
+            torch.testing.assert_close(a, b, atol=1e-9 * max(1.0, float(b.abs().max())), rtol=1e-9, msg=name)
+
+    def test_float32_gradients(self):
+        planes = random_planes(60, dtype=torch.float32)
+        P1, P2, out, (d2, n2, a2) = _both(planes, 300.0)
+        torch.testing.assert_close(out.depth, d2, atol=1e-5, rtol=0)
+        g = torch.Generator().manual_seed(0)
+        v_depth, v_normal = torch.randn(d2.shape, generator=g), torch.randn(n2.shape, generator=g)
+        g1 = torch.autograd.grad((out.depth * v_depth).sum() + (out.normal * v_normal).sum(), P1)
+        g2 = torch.autograd.grad((d2 * v_depth).sum() + (n2 * v_normal).sum(), P2)
+        for a, b in zip(g1, g2):
+            # float32 sums in a different order: relative to the largest gradient entry
+            assert float((a - b).abs().max()) <= 1e-5 * float(b.abs().max())
+
+    @pytest.mark.parametrize("tile_size", [4, 8, 16, 32])
+    def test_tile_size_does_not_change_result(self, tile_size):
+        planes = random_planes(40, seed=3)
+        _, _, out, (d2, n2, a2) = _both(planes, 300.0, tile_size=tile_size)
+        torch.testing.assert_close(out.depth, d2, atol=1e-10, rtol=0)
+
+    def test_posed_camera(self):
+        """Same scene seen through a non-trivial cam_from_world (planes moved by its inverse)."""
+        from lipmap.poses import T_from_qt, invert_T
+
+        planes = random_planes(30, seed=5)
+        T = T_from_qt(np.array([0.9, 0.1, -0.2, 0.3]) / np.linalg.norm([0.9, 0.1, -0.2, 0.3]), np.array([0.3, -0.1, 0.2]))
+        Ti = torch.tensor(invert_T(T))
+        from lipmap.planes.primitives import quat_to_rotmat
+        from lipmap.planes.primitives import rotmat_to_quat
+
+        c = planes.center @ Ti[:3, :3].T + Ti[:3, 3]
+        q = torch.tensor(rotmat_to_quat((Ti[:3, :3] @ quat_to_rotmat(planes.quat)).numpy()))
+        moved = Planes(c, q, planes.radii)
+        out0 = rasterize_planes(*planes.tensors(), torch.eye(4, dtype=torch.float64), INTR, W, H, 300.0)
+        out1 = rasterize_planes(*moved.tensors(), torch.tensor(T), INTR, W, H, 300.0)
+        torch.testing.assert_close(out0.depth, out1.depth, atol=1e-9, rtol=0)
+        torch.testing.assert_close(out0.normal, out1.normal, atol=1e-9, rtol=0)
+
+
+class TestKnownAnswers:
+    def test_fronto_parallel_plane_depth_and_normal(self):
+        cam = Camera(W, H, INTR)
+        p = Planes.from_normals([[0, 0, 2.0]], [[0, 0, 1.0]], [0.5], dtype=torch.float64)  # normal away from camera
+        out = render_planes(p, cam, np.eye(4), lam=1500.0)
+        inside = out.alpha > 0.999
+        # at 2 m, 0.5 m radius covers 15 px either side of the centre
+        assert int(inside.sum()) == 30 * 30
+        assert torch.allclose(out.depth[inside], torch.tensor(2.0, dtype=torch.float64))
+        # the rendered normal faces the camera even though R z points away
+        assert torch.allclose(out.normal[inside], torch.tensor([0, 0, -1.0], dtype=torch.float64))
+
+    def test_splat_falloff(self):
+        """Weight 2 sigmoid(lam (r - |p|)) outside: exactly WEIGHT_EPS at SPLAT_MARGIN / lam."""
+        assert math.isclose(2 / (1 + math.exp(SPLAT_MARGIN)), WEIGHT_EPS, rel_tol=1e-9)
+
+    def test_occlusion_front_plane_wins(self):
+        planes = occlusion_scene()
+        out = rasterize_planes(*planes.tensors(), torch.eye(4, dtype=torch.float64), INTR, W, H, 1500.0)
+        # the pixel at the front plane's centre: depth ~2 m (front), not 3 m (wall)
+        u = int(60 * 0.2 / 2.0 + 32)
+        v = int(60 * 0.1 / 2.0 + 24)
+        assert abs(float(out.depth[v, u]) - 2.0) < 0.05
+        assert int(out.hits[v, u, 0]) == 1
+        assert float(out.alpha[v, u]) == pytest.approx(1.0)
+
+
+class TestLambdaSchedule:
+    def test_values(self):
+        assert lambda_schedule(0, 6000) == pytest.approx(5 * 20 / math.e)
+        assert lambda_schedule(600, 6000) == pytest.approx(100.0)
+        assert lambda_schedule(6000, 6000) == 1500.0
+        assert lambda_schedule(0, 5) == pytest.approx(5 * 20 / math.e)  # max_iters // 10 == 0 guarded
+
+
+class TestBadInput:
+    def test_all_planes_culled(self):
+        p = Planes.from_normals([[0, 0, -2.0], [0, 0, 1e-3]], [[0, 0, 1.0], [0, 0, 1.0]], [0.1, 0.1])
+        P = [t.clone().requires_grad_() for t in p.tensors()]
+        out = rasterize_planes(*P, torch.eye(4), INTR, W, H, 300.0)
+        assert out.n_pairs == 0
+        assert float(out.alpha.detach().abs().max()) == 0 and float(out.depth.detach().abs().max()) == 0
+        (out.depth.sum() + out.normal.sum()).backward()  # a graph without pairs still back-propagates
+        assert all(float(t.grad.abs().max()) == 0 for t in P)
+
+    def test_no_planes(self):
+        p = Planes.empty()
+        out = rasterize_planes(*p.tensors(), torch.eye(4), INTR, W, H, 300.0)
+        assert out.depth.shape == (H, W) and out.n_pairs == 0
+
+    def test_nan_and_degenerate_planes_are_ignored(self):
+        good = random_planes(20, dtype=torch.float32)
+        c, q, r = (t.clone() for t in good.tensors())
+        c[0] = float("nan")
+        q[1] = 0.0
+        r[2] = -0.3  # clamped to R_MIN in use: tiny, but finite
+        r[3, 1] = float("nan")
+        P = [t.requires_grad_() for t in (c, q, r)]
+        out = rasterize_planes(*P, torch.eye(4), INTR, W, H, 300.0)
+        assert torch.isfinite(out.depth).all() and torch.isfinite(out.normal).all()
+        hit = out.hits[out.hits >= 0]
+        assert not torch.isin(hit, torch.tensor([0, 3])).any()
+        (out.depth.sum() + out.normal.sum()).backward()
+        for t in P:
+            assert torch.isfinite(t.grad).all()
+
+    def test_bad_shapes(self):
+        from lipmap.errors import InputError
+
+        with pytest.raises(InputError):
+            rasterize_planes(torch.zeros(3, 2), torch.zeros(3, 4), torch.zeros(3, 4), torch.eye(4), INTR, W, H, 10.0)
+        with pytest.raises(InputError):
+            rasterize_planes(torch.zeros(3, 3), torch.zeros(3, 4), torch.zeros(3, 4), torch.eye(3), INTR, W, H, 10.0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA not available")
+def test_cuda_matches_cpu():
+    planes = random_planes(60, dtype=torch.float32)
+    T = torch.eye(4)
+    out_c = rasterize_planes(*planes.tensors(), T, INTR, W, H, 300.0)
+    pc = planes.to("cuda")
+    out_g = rasterize_planes(*pc.tensors(), T.cuda(), INTR, W, H, 300.0)
+    torch.testing.assert_close(out_g.depth.cpu(), out_c.depth, atol=1e-4, rtol=0)
+    assert torch.equal(out_g.hits.cpu(), out_c.hits)
