@@ -1,0 +1,551 @@
+"""Visual report of a localization run, made from its artifacts only (no pose is recomputed).
+
+    write_report(OUT, dataset) reads
+        OUT/<dataset>/results.json, summary.md
+        OUT/<dataset>/<scene>/results.json, queries-<digest>.jsonl, linemap.h5, lines2d_query.h5, planes.ply
+    and writes
+        OUT/<dataset>/report/report.md
+        OUT/<dataset>/report/accuracy_5cm5deg.png           ours (point, point+line) beside the paper's rows
+        OUT/<dataset>/report/cdf_<scene>.png                 cumulative translation / rotation errors
+        OUT/<dataset>/report/query_<scene>_<kind><k>.png     query overlays, point-only vs point+line pose
+        OUT/<dataset>/report/linemap_<scene>.png, planes_<scene>.png
+    and adds (or refreshes) a "Plots" block at the end of summary.md.
+
+The query images and cameras come from the dataset (``root``): pass it, or the run's results.json
+may name it ("root"); a synthetic run made by ``lipmap-loc eval`` without --root is found under
+OUT/synthetic-data. Without a dataset root the image-based figures are skipped (and the report says so).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from lipmap import InputError, logger
+from lipmap.imageio import write_text_atomic
+
+from . import evaluate as ev
+
+KEYS = ("point", "point+line")
+LABELS = {"point": "point only", "point+line": "point+line"}
+COLORS = {"point": "#1f77b4", "point+line": "#ff7f0e"}
+T_THRESH_CM, R_THRESH_DEG = 5.0, 5.0
+BEGIN, END = "<!-- lipmap-report:begin -->", "<!-- lipmap-report:end -->"
+
+
+# ----------------------------------------------------------------------------------------------
+# reading a run
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class SceneRun:
+    """One scene's artifacts: results.json, the journal's poses, and file locations."""
+
+    name: str
+    folder: Path
+    results: dict
+    poses: dict = field(default_factory=dict)  # {query: {"point": (4, 4) or None, "point+line": ...}}
+    journal: Optional[Path] = None
+
+    @property
+    def queries(self) -> dict:
+        return self.results.get("queries", {})
+
+    def errors(self, key: str) -> tuple[np.ndarray, np.ndarray]:
+        """Translation (cm) and rotation (deg) errors of every evaluated query; inf = failed."""
+        t = [_num(q.get(key, {}).get("t_cm")) for q in self.queries.values()]
+        r = [_num(q.get(key, {}).get("R_deg")) for q in self.queries.values()]
+        return np.array(t, dtype=float), np.array(r, dtype=float)
+
+
+def _plural(n, one: str, many: str) -> str:
+    return f"{n} {one if n == 1 else many}"
+
+
+def _num(x) -> float:
+    return math.inf if x is None else float(x)
+
+
+def config_digest(config: dict) -> str:
+    """The journal digest of a run's config as stored in results.json (LocalizationConfig.digest)."""
+    return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:10]
+
+
+def find_journal(folder: Path, results: dict) -> Optional[Path]:
+    """The journal that produced ``results``: queries-<digest of its config>.jsonl, else the newest."""
+    if "config" in results:
+        p = folder / f"queries-{config_digest(results['config'])}.jsonl"
+        if p.exists():
+            return p
+    found = sorted(folder.glob("queries-*.jsonl"), key=lambda p: p.stat().st_mtime)
+    if found:
+        logger.warning("No journal matches the config in %s; using the newest, %s.", folder / "results.json", found[-1].name)
+        return found[-1]
+    return None
+
+
+def read_journal_poses(path: Optional[Path]) -> dict:
+    """{query: {"point": cam_from_world (4, 4) or None, "point+line": ...}}; later lines win."""
+    out = {}
+    if path is None or not path.exists():
+        return out
+    for line in path.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+            name = rec["name"]
+        except (json.JSONDecodeError, KeyError, TypeError):
+            continue  # a line cut by an interrupted write
+        poses = {}
+        for key in KEYS:
+            T = (rec.get(key) or {}).get("cam_from_world")
+            poses[key] = np.asarray(T, dtype=float) if T is not None and (rec.get(key) or {}).get("success") else None
+        out[name] = poses
+    return out
+
+
+def load_scene_run(folder) -> SceneRun:
+    folder = Path(folder)
+    path = folder / "results.json"
+    if not path.exists():
+        raise InputError("scene results are missing (run `lipmap-loc eval` first)", path)
+    try:
+        results = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(f"not valid JSON: {e}", path) from None
+    journal = find_journal(folder, results)
+    return SceneRun(folder.name, folder, results, read_journal_poses(journal), journal)
+
+
+def select_examples(run: SceneRun, n: int = 3) -> list[tuple[str, int, str]]:
+    """The ``n`` largest translation improvements of point+line over point-only, then the ``n``
+    largest point+line translation errors among the rest; only queries with both poses.
+
+    Returns:
+        ``[(kind, rank, query)]`` with kind "improved" or "worst", rank from 1.
+    """
+    cand = []
+    for q, rec in run.queries.items():
+        p = run.poses.get(q, {})
+        tp, tl = _num(rec.get("point", {}).get("t_cm")), _num(rec.get("point+line", {}).get("t_cm"))
+        if p.get("point") is not None and p.get("point+line") is not None and math.isfinite(tp) and math.isfinite(tl):
+            cand.append((q, tp, tl))
+    improved = [c for c in sorted(cand, key=lambda c: c[2] - c[1]) if c[1] > c[2]][:n]
+    taken = {c[0] for c in improved}
+    worst = sorted((c for c in cand if c[0] not in taken), key=lambda c: -c[2])[:n]
+    return [("improved", i + 1, c[0]) for i, c in enumerate(improved)] + [("worst", i + 1, c[0]) for i, c in enumerate(worst)]
+
+
+# ----------------------------------------------------------------------------------------------
+# figures
+# ----------------------------------------------------------------------------------------------
+def _cdf_panel(ax, errs: dict, unit: str, thresh: float, what: str):
+    finite = np.concatenate([e[np.isfinite(e)] for e in errs.values()])
+    if len(finite) == 0:
+        ax.text(0.5, 0.5, "no successful query", ha="center", va="center", transform=ax.transAxes)
+        return
+    pos = finite[finite > 0]
+    # an exact 0 (identical rotation) has no place on a log axis: it is drawn at the left edge
+    lo = max(min(pos.min() if len(pos) else thresh, thresh / 10) / 1.6, 1e-3)
+    hi = max(finite.max(), thresh * 2) * 1.6
+    for key, e in errs.items():
+        n = len(e)
+        x = np.maximum(np.sort(e[np.isfinite(e)]), lo)
+        y = 100.0 * np.arange(1, len(x) + 1) / max(n, 1)
+        xs = np.concatenate([[lo], x, [hi]])
+        ys = np.concatenate([[0.0], y, [y[-1] if len(y) else 0.0]])
+        med = np.median(e) if n else math.inf
+        within = 100.0 * np.mean(e <= thresh) if n else 0.0
+        fails = int(np.sum(~np.isfinite(e)))
+        label = f"{LABELS[key]}: median {med:.2f} {unit}, {within:.0f}% ≤ {thresh:g} {unit}" if math.isfinite(med) \
+            else f"{LABELS[key]}: median failed, {within:.0f}% ≤ {thresh:g} {unit}"
+        if fails:
+            label += f", {fails} failed"
+        ax.step(xs, ys, where="post", color=COLORS[key], lw=2.2, label=label)
+    ax.axvline(thresh, color="0.35", ls="--", lw=1.2)
+    ax.text(thresh, 50, f"{thresh:g} {unit} ", color="0.25", fontsize=10, rotation=90, ha="right", va="center")
+    ax.set_xscale("log")
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(0, 101)
+    import matplotlib.ticker as mt
+
+    ax.xaxis.set_major_locator(mt.LogLocator(subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_major_formatter(mt.FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.xaxis.set_minor_formatter(mt.NullFormatter())
+    ax.set_xlabel(f"{what} error ({unit}, log scale)")
+    ax.set_ylabel("queries with smaller error (%)")
+    ax.grid(True, which="major", alpha=0.35)
+    ax.grid(True, which="minor", alpha=0.12)
+    ax.legend(loc="lower right", framealpha=0.9)
+
+
+def plot_error_cdfs(run: SceneRun, out_png) -> Path:
+    """Cumulative distributions of translation (cm) and rotation (deg) errors, point vs point+line."""
+    from lipmap import viz
+
+    t, r = {}, {}
+    for key in KEYS:
+        t[key], r[key] = run.errors(key)
+    n = len(run.queries)
+    with viz.style():
+        fig = viz.new_figure(14, 5.2)
+        a0, a1 = fig.subplots(1, 2)
+        _cdf_panel(a0, t, "cm", T_THRESH_CM, "translation")
+        _cdf_panel(a1, r, "deg", R_THRESH_DEG, "rotation")
+        a0.set_title("translation error")
+        a1.set_title("rotation error")
+        fig.suptitle(f"{run.name}: cumulative pose errors over {_plural(n, 'query', 'queries')} "
+                     "(failed queries never reach the curve)")
+    return viz.save_figure(fig, out_png)
+
+
+def plot_accuracy_bars(scenes: dict, out_png, paper: Optional[dict] = None, n_queries: Optional[dict] = None) -> Path:
+    """Per-scene % of queries within 5 cm and 5 deg: ours (point, point+line) beside the paper's rows.
+
+    Args:
+        scenes: {scene: {"point": S, "point+line": S}} (the results.json summaries).
+        paper: the paper table (default: benchmarks/7scenes/paper_table.json).
+    """
+    from matplotlib.patches import Patch
+
+    from lipmap import viz
+
+    paper = paper or ev.load_paper_table()
+    cols = list(paper["columns"])
+    greys = {c: str(g) for c, g in zip([c for c in cols if paper["columns"][c]["group"] == "matching-based"],
+                                         np.linspace(0.3, 0.78, 4))}
+    greens = ["#1b7837", "#5aae61", "#a6dba0"]
+    for c, g in zip([c for c in cols if paper["columns"][c]["group"] != "matching-based"], greens):
+        greys[c] = g
+    names = list(scenes)
+    nb = 2 + len(cols)
+    width = 0.86 / nb
+    with viz.style():
+        fig = viz.new_figure(max(9.0, 1.9 * len(names) + 4.5), 6.2)
+        ax = fig.add_subplot(1, 1, 1)
+        for i, name in enumerate(names):
+            x0 = i - 0.43 + width / 2
+            for j, key in enumerate(KEYS):
+                v = (scenes[name].get(key) or {}).get("acc_5cm_5deg")
+                if v is None:
+                    continue
+                ax.bar(x0 + j * width, v, width, color=COLORS[key], edgecolor="black", lw=0.6, zorder=3)
+                ax.text(x0 + j * width, v + 1, f"{v:.0f}", ha="center", va="bottom", fontsize=9, zorder=4)
+            prow = paper["scenes"].get(name.lower())
+            if prow is None:
+                ax.text(x0 + (2 + (len(cols) - 1) / 2) * width, 50, "not in the\npaper's table", ha="center",
+                        va="center", fontsize=10, color="0.3", style="italic")
+                continue
+            for j, c in enumerate(cols):
+                v = prow[c][2]
+                ax.bar(x0 + (2 + j) * width, v, width, color=greys[c], edgecolor="black", lw=0.4, zorder=3,
+                       hatch="//" if paper["columns"][c]["group"] != "matching-based" else None)
+        labels = [f"{n}\n({_plural((n_queries or {}).get(n, '?'), 'query', 'queries')})" if n_queries else n for n in names]
+        ax.set_xticks(range(len(names)), labels)
+        ax.set_xlim(-0.55, len(names) - 0.45)
+        ax.set_ylim(0, 108)
+        ax.set_ylabel("queries within 5 cm and 5° (%)")
+        ax.grid(True, axis="y", alpha=0.35, zorder=0)
+        handles = [Patch(facecolor=COLORS[k], edgecolor="black", label=f"ours, {LABELS[k]}") for k in KEYS]
+        handles += [Patch(facecolor=greys[c], edgecolor="black", hatch="//" if paper["columns"][c]["group"] != "matching-based" else None,
+                          label=f"paper: {c}") for c in cols]
+        ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=10, framealpha=0.95,
+                  title="ours: this run; paper: full test\nsets, hloc SuperPoint+SuperGlue", title_fontsize=10)
+        fig.suptitle("Accuracy at 5 cm / 5°: ours beside the paper's 7-Scenes table")
+    return viz.save_figure(fig, out_png)
+
+
+def plot_query_overlay(run: SceneRun, query: str, view, linemap, out_png, line_query=None, kind: str = "",
+                       rank: int = 0, min_px: float = 20.0, max_lines: int = 300) -> Path:
+    """The query image with its detected 2D lines (blue) and the map's visible lines projected (red)
+    with the point-only pose (left) and the point+line pose (right).
+
+    Visible: in front, inside the image, not occluded by the map's planes (``line_query``) or, for
+    maps without planes, by the query's depth map; drawn: those at least ``min_px`` long in the
+    image, at most ``max_lines`` of them (best supported first).
+    """
+    from lipmap import viz
+    from lipmap.lines2d import load_lines
+
+    cam = view.camera
+    try:
+        img = view.load_color()
+    except InputError as e:
+        logger.warning("%s", e)
+        img = None
+    det = None
+    qlines = run.folder / "lines2d_query.h5"
+    try:
+        det = load_lines(qlines, query)
+    except InputError as e:
+        logger.warning("No query lines for the overlay of %s: %s", query, e)
+    depth, occl = None, "planes"
+    if line_query is None:
+        occl = "none"
+        if view.depth_path is not None:
+            try:
+                depth, occl = view.load_depth(), "query depth map"
+            except InputError as e:
+                logger.warning("%s", e)
+    rec = run.queries.get(query, {})
+    panels = []
+    support = linemap.supports[:, 0] if len(linemap) else np.zeros(0, int)
+    for key in KEYS:
+        T = run.poses[query][key]
+        idx = viz.visible_line_indices(linemap.lines, T, cam, depth=depth, line_query=line_query)
+        segs, ok = viz.project_to_image(linemap.lines[idx], T, cam)
+        idx, segs = idx[ok], segs[ok]
+        # Short and weakly supported map lines bury the alignment under clutter: keep the lines the
+        # line query could use (>= min_px) and, of those, the best supported.
+        n_vis = len(idx)
+        length = np.linalg.norm(segs[:, 1] - segs[:, 0], axis=1) if len(segs) else np.zeros(0)
+        keep = np.flatnonzero(length >= min_px)
+        capped = len(keep) > max_lines
+        if capped:
+            keep = keep[np.lexsort((-length[keep], -support[idx[keep]]))[:max_lines]]
+        segs = segs[keep]
+        r = rec.get(key, {})
+        title = f"{LABELS[key]} pose: {_num(r.get('t_cm')):.1f} cm, {_num(r.get('R_deg')):.2f}°"
+        if key == "point+line" and "n_line_inliers" in r:
+            title += f"  ({r['n_line_inliers']}/{r.get('n_line_matches', '?')} line inliers)"
+        else:
+            title += f"  ({r.get('n_inliers', '?')}/{r.get('n_matches', '?')} point inliers)"
+        label = f"map lines, projected ({len(segs)} of {n_vis} visible"
+        if len(segs) < n_vis:
+            label += f": ≥ {min_px:g} px" + (f", {max_lines} best supported" if capped else "")
+        panels.append((title, segs, label + ")"))
+    what = {"improved": "largest improvement", "worst": "largest point+line error"}.get(kind, kind)
+    sup = f"{run.name} / {query}" + (f"  ({what} #{rank})" if kind else "") + f"  - occlusion test: {occl}"
+    fig = viz.overlay_figure(img, cam, det, panels, sup)
+    return viz.save_figure(fig, out_png)
+
+
+# ----------------------------------------------------------------------------------------------
+# the report
+# ----------------------------------------------------------------------------------------------
+def _dataset_root(out: Path, dataset: str, all_res: dict, run: SceneRun, root) -> Optional[Path]:
+    cands = [root, run.results.get("root"), run.results.get("dataset_root"), all_res.get("root"),
+             all_res.get("dataset_root"), (all_res.get("scene_details", {}).get(run.name) or {}).get("root")]
+    if dataset == "synthetic":
+        cands.append(out.parent / "synthetic-data")
+    for c in cands:
+        if c and Path(c).is_dir():
+            return Path(c)
+    return None
+
+
+def _load_scene(dataset, root, run: SceneRun):
+    from lipmap.datasets import load_scene
+
+    return load_scene(dataset, root, run.name, pose_source=run.results.get("pose_source", "posetxt"))
+
+
+def _slug(s: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", s)
+
+
+def _fmt_err(r: dict) -> str:
+    t, R = _num(r.get("t_cm")), _num(r.get("R_deg"))
+    return "failed" if not math.isfinite(t) else f"{t:.1f} cm / {R:.2f}°"
+
+
+def detect_dataset(out_root) -> tuple[Path, str]:
+    """(out_root, dataset) from ``OUT`` (one dataset folder with results.json) or ``OUT/<dataset>``."""
+    out_root = Path(out_root)
+    if (out_root / "results.json").exists():
+        try:
+            ds = json.loads((out_root / "results.json").read_text()).get("dataset")
+        except json.JSONDecodeError:
+            ds = None
+        if ds and out_root.name == ds:
+            return out_root.parent, ds
+    found = sorted(p.name for p in out_root.iterdir() if (p / "results.json").exists()) if out_root.is_dir() else []
+    if len(found) == 1:
+        return out_root, found[0]
+    if not found:
+        raise InputError("no <dataset>/results.json here (run `lipmap-loc eval` first)", out_root)
+    raise InputError(f"several datasets here ({', '.join(found)})", out_root, hint="pass --dataset")
+
+
+def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples: int = 3) -> Path:
+    """Write OUT/<dataset>/report/ (PNGs + report.md) from a finished run; returns report.md.
+
+    Args:
+        out_root: the ``--out`` folder of ``lipmap-loc eval`` (holds ``<dataset>/``).
+        dataset: "7scenes" or "synthetic"; None: the only dataset under ``out_root``.
+        root: dataset root for the query / mapping images (see the module docstring).
+        n_examples: query overlays per kind (largest improvements, largest point+line errors).
+    """
+    from lipmap import viz
+    from lipmap.linemap import LineMap
+
+    if dataset is None:
+        out_root, dataset = detect_dataset(out_root)
+    out = Path(out_root) / dataset
+    if not out.is_dir():
+        raise InputError("no results for this dataset here (run `lipmap-loc eval` first)", out)
+    rep = out / "report"
+    rep.mkdir(parents=True, exist_ok=True)
+    all_path = out / "results.json"
+    all_res = json.loads(all_path.read_text()) if all_path.exists() else {}
+    names = list(all_res.get("scenes", {})) or sorted(p.name for p in out.iterdir() if (p / "results.json").exists())
+    if not names:
+        raise InputError("no scene results (<scene>/results.json) here", out)
+    runs = {n: load_scene_run(out / n) for n in names}
+    summaries = {n: all_res.get("scenes", {}).get(n) or r.results.get("summary", {}) for n, r in runs.items()}
+    n_q = {n: len(r.queries) for n, r in runs.items()}
+    paper = ev.load_paper_table()
+    notes = []
+
+    md = [f"# Localization report ({dataset})", "",
+          f"Made from the artifacts in `{out}` (results.json, per-query journals, line maps); no pose was "
+          "recomputed. Errors: translation = distance between camera centres, rotation = angle of "
+          "R_gt^T R_est; failed queries count as infinitely wrong. Full table: [summary.md](../summary.md).", ""]
+    md += ["| scene | queries | line map | ours point | ours point+line | paper LiP-Map (point+line) |",
+           "|---|---|---|---|---|---|"]
+    for n, r in runs.items():
+        s = summaries[n]
+        prow = paper["scenes"].get(n.lower())
+        pcell = "n/a (not in the paper)" if prow is None else "{:.1f} / {:.2f} / {:.1f}".format(*prow["LiP-Map (point+line)"])
+        method = (r.results.get("config") or {}).get("map_method", "?")
+        md.append(f"| {n} | {n_q[n]} | {r.results.get('n_map_lines', '?')} lines ({method}) | {ev._fmt(s.get('point'))} "
+                  f"| {ev._fmt(s.get('point+line'))} | {pcell} |")
+    md += ["", "Cells: median translation (cm) / median rotation (deg) / % within 5 cm and 5°.", ""]
+
+    # accuracy bars
+    bars = plot_accuracy_bars(summaries, rep / "accuracy_5cm5deg.png", paper, n_q)
+    missing = [n for n in names if n.lower() not in paper["scenes"]]
+    md += ["## Accuracy at 5 cm / 5°", "",
+           "Ours (blue: point only, orange: point+line) beside every row of the paper's 7-Scenes table (grey: "
+           "matching-based, hatched green: learning-based). The paper used the full test sequences and hloc "
+           "SuperPoint+SuperGlue points, so compare trends, not absolute numbers."
+           + (f" Not in the paper's table (no paper bars): {', '.join(missing)}." if missing else ""), "",
+           f"![accuracy at 5 cm / 5 deg]({bars.name})", ""]
+
+    # error distributions
+    md += ["## Error distributions", "",
+           "Share of queries localized better than a given error (log x axis); the dashed line marks 5 cm / 5°. "
+           "A curve that ends below 100 % has failed queries.", ""]
+    cdfs = {}
+    for n, r in runs.items():
+        if not r.queries:
+            notes.append(f"{n}: no per-query results, no error distribution.")
+            continue
+        cdfs[n] = plot_error_cdfs(r, rep / f"cdf_{_slug(n)}.png")
+        md += [f"### {n}", "", f"![error distributions of {n}]({cdfs[n].name})", ""]
+
+    # query overlays and line-map renders need the dataset's images
+    md_q = ["## Query examples", "",
+            f"For the {n_examples} queries whose translation error improved most with lines, then the "
+            f"{n_examples} largest point+line translation errors: the query image with its detected 2D lines "
+            "(blue) and the map's visible 3D lines projected (red) with the point-only pose (left) and the "
+            "point+line pose (right). Well-aligned red and blue lines mean a good pose.", ""]
+    md_m = ["## Line maps", "",
+            "Left: the map's lines drawn into the mapping view that sees most of them, over its dimmed image; "
+            "right: all lines from an oblique virtual camera outside the scene's bounding box (grey), nearer "
+            "lines thicker, with the mapping camera centres (green). Colour: support (number of images). "
+            "Planar mesh (lipmap maps): ray-cast from the same mapping view and from the overview camera, "
+            "coloured by normal.", ""]
+    for n, r in runs.items():
+        lm_path = r.folder / "linemap.h5"
+        lm = None
+        try:
+            lm = LineMap.load(lm_path)
+        except InputError as e:
+            notes.append(f"{n}: no line map ({e}); no overlays or map renders.")
+        droot = _dataset_root(out, dataset, all_res, r, root)
+        scene = None
+        if droot is None:
+            notes.append(f"{n}: dataset root unknown (pass `--root`), so no query overlays and no mapping-view renders.")
+        else:
+            try:
+                scene = _load_scene(dataset, droot, r)
+            except InputError as e:
+                notes.append(f"{n}: cannot load the scene from {droot} ({e}); no query overlays.")
+        # line map renders (overview works without the scene)
+        if lm is not None:
+            try:
+                written = viz.render_linemap_views(lm, scene, rep, f"linemap_{_slug(n)}.png", f"planes_{_slug(n)}.png",
+                                                   map_dir=r.folder)
+            except Exception as e:  # noqa: BLE001 - one bad render must not lose the report
+                logger.warning("Line map render of %s failed: %s", n, e)
+                notes.append(f"{n}: line map render failed ({e}).")
+                written = []
+            md_m += [f"### {n}", "", f"{len(lm)} lines, method `{lm.metadata.get('method', '?')}`."
+                     + ("" if any("planes_" in p.name for p in written) else " This map has no planes (no planes.ply), so no planar mesh render."), ""]
+            md_m += [f"![{p.stem}]({p.name})" for p in written] + [""]
+        if lm is None or scene is None:
+            continue
+        ex = select_examples(r, n_examples)
+        if not ex:
+            notes.append(f"{n}: no query has both a point-only and a point+line pose; no overlays.")
+            continue
+        lq = None
+        if viz.linemap_corners(lm, r.folder) is not None:
+            from .linequery import LineQuery
+
+            lq = LineQuery(lm.lines, viz.linemap_corners(lm, r.folder))
+        md_q += [f"### {n}", "", "| example | query | point only | point+line | line inliers |", "|---|---|---|---|---|"]
+        imgs = []
+        for kind, rank, q in ex:
+            try:
+                view = scene.view(q)
+            except KeyError:
+                notes.append(f"{n}: query {q} is not in the loaded scene; overlay skipped.")
+                continue
+            p = plot_query_overlay(r, q, view, lm, rep / f"query_{_slug(n)}_{kind}{rank}.png", lq, kind, rank)
+            rec = r.queries[q]
+            what = "largest improvement" if kind == "improved" else "largest point+line error"
+            md_q.append(f"| {what} #{rank} | `{q}` | {_fmt_err(rec['point'])} | {_fmt_err(rec['point+line'])} "
+                        f"| {rec['point+line'].get('n_line_inliers', '-')} |")
+            imgs.append(f"![{kind} {rank}: {q}]({p.name})")
+        md_q += [""] + [x for i in imgs for x in (i, "")]
+    md += md_q + md_m
+    if notes:
+        md += ["## Notes", ""] + [f"- {x}" for x in notes] + [""]
+    report = rep / "report.md"
+    write_text_atomic(report, "\n".join(md))
+    _refresh_summary_links(out / "summary.md", rep, bars, cdfs)
+    logger.info("Report: %s", report)
+    return report
+
+
+def _refresh_summary_links(summary: Path, rep: Path, bars: Path, cdfs: dict):
+    """Add or replace the plots block at the end of summary.md (nothing else is touched)."""
+    block = [BEGIN, "## Plots", "", f"Full visual report: [report/report.md](report/report.md)", "",
+             f"![accuracy at 5 cm / 5 deg](report/{bars.name})", ""]
+    block += [f"![error distributions of {n}](report/{p.name})" for n, p in cdfs.items()]
+    block += ["", END]
+    text = summary.read_text() if summary.exists() else ""
+    if BEGIN in text and END in text:
+        pre, rest = text.split(BEGIN, 1)
+        post = rest.split(END, 1)[1]
+        text = pre.rstrip("\n") + "\n\n" + "\n".join(block) + post
+    else:
+        text = text.rstrip("\n") + ("\n\n" if text else "") + "\n".join(block) + "\n"
+    write_text_atomic(summary, text)
+
+
+# ----------------------------------------------------------------------------------------------
+# CLI
+# ----------------------------------------------------------------------------------------------
+def add_report_parser(subparsers):
+    """`lipmap-loc report OUT [--dataset D] [--root ROOT] [--examples N]`."""
+    p = subparsers.add_parser("report", help="plots and report.md from a finished eval run (no pose is recomputed)")
+    p.add_argument("out", type=Path, help="the --out folder of `lipmap-loc eval` (holds <dataset>/results.json)")
+    p.add_argument("--dataset", default=None, choices=["7scenes", "synthetic"], help="default: the only dataset under OUT")
+    p.add_argument("--root", type=Path, default=None,
+                   help="dataset root for the query and mapping images (default: from results.json, or OUT/synthetic-data)")
+    p.add_argument("--examples", type=int, default=3, help="query overlays per kind (improved, worst)")
+    p.set_defaults(func=cli_report)
+    return p
+
+
+def cli_report(args) -> Path:
+    path = write_report(args.out, args.dataset, root=args.root, n_examples=args.examples)
+    print(f"report: {path}")
+    return path
