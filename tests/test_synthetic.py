@@ -263,6 +263,42 @@ class TestAppearance:
         assert 2.0 < np.median(rot) < 15.0
 
 
+    def test_queries_localize_with_points(self, scene_dir, camera):
+        """The passes overlap enough for point localization: SIFT matches to the 3 nearest mapping
+        frames, lifted to 3D with their depth and pose, give PnP poses within 5 cm / 5 deg."""
+        sift, bf, K = cv2.SIFT_create(), cv2.BFMatcher(), camera.K
+
+        def frame(pose):
+            kp, de = sift.detectAndCompute(read_color(Path(f"{_stem(pose)}.color.png"), gray=True), None)
+            # cv2 keypoints have pixel centres at integers; +0.5 -> COLMAP convention
+            return _cam_from_world(pose), np.array([k.pt for k in kp]) + 0.5, de, Path(f"{_stem(pose)}.depth.png")
+
+        mapping = [frame(p) for p in _frames(scene_dir, "seq-01")]
+        centers = np.array([-T[:3, :3].T @ T[:3, 3] for T, *_ in mapping])
+        ok = []
+        for pose in _frames(scene_dir, "seq-02")[::2]:
+            Tq, kq, dq, _ = frame(pose)
+            near = np.argsort(np.linalg.norm(centers - (-Tq[:3, :3].T @ Tq[:3, 3]), axis=1))[:3]
+            p3, p2 = [], []
+            for k in near:
+                Tm, km, dm, depth_path = mapping[k]
+                depth = read_depth(depth_path)
+                for a, b in bf.knnMatch(dq, dm, k=2):
+                    if a.distance < 0.8 * b.distance:
+                        u, v = km[a.trainIdx]
+                        z = depth[int(v), int(u)]
+                        x_cam = np.array([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], 1.0]) * z
+                        p3.append(Tm[:3, :3].T @ (x_cam - Tm[:3, 3]))
+                        p2.append(kq[a.queryIdx] - 0.5)  # back to OpenCV's pixel centres for solvePnP
+            found, rvec, tvec, _ = cv2.solvePnPRansac(np.array(p3), np.array(p2), K, None, reprojectionError=3.0,
+                                                      iterationsCount=1000)
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+            dt = np.linalg.norm((-T[:3, :3].T @ T[:3, 3]) - (-Tq[:3, :3].T @ Tq[:3, 3]))
+            ok.append(found and dt < 0.05 and rotation_error_deg(Tq[:3, :3], T[:3, :3]) < 5)
+        assert np.mean(ok) >= 0.9, ok
+
+
 class TestReaderAndCli:
     def test_load_scene(self, synthetic_root, scene_dir, camera):
         from lipmap.datasets import load_scene
