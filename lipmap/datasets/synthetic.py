@@ -126,11 +126,12 @@ def _draw_loop(room: Room, cfg: SynthConfig, rng: np.random.Generator, attempt: 
     return _LoopParams(
         center=tuple(center), semi_axes=tuple(semi), theta0=u(0, 2 * np.pi), direction=float(rng.choice([-1.0, 1.0])),
         wobble=(u(0.0, 0.12), u(0, 2 * np.pi)),
-        height=(u(1.4, 1.5), u(0.1, 0.18), float(rng.integers(1, 4)), u(0, 2 * np.pi)),
+        # heights stay in [1.2, 1.7] m, the query offset included
+        height=(u(1.42, 1.48), u(0.08, 0.14), float(rng.integers(1, 4)), u(0, 2 * np.pi)),
         yaw=(u(0.3, 0.6) * calm, float(rng.integers(1, 3)), u(0, 2 * np.pi)),
         pitch=(u(-0.3, -0.15), u(0.05, 0.12), float(rng.integers(1, 4)), u(0, 2 * np.pi)),
         roll=(u(0.0, 0.05), u(0, 2 * np.pi)),
-        query=(u(0.12, 0.18), u(0.04, 0.08), u(0, 2 * np.pi), u(0.05, 0.1), u(0, 2 * np.pi),
+        query=(u(0.12, 0.18), u(0.04, 0.08), u(0, 2 * np.pi), u(0.04, 0.08), u(0, 2 * np.pi),
                u(0.04, 0.09), u(0, 2 * np.pi), u(0.03, 0.06), u(0, 2 * np.pi)),
     )
 
