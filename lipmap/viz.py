@@ -633,6 +633,7 @@ def pr_curve(linemap, gt, thresholds=None, conf=None) -> dict:
                       (("precision", "prec"), ("recall", "recall"), ("f", "f"))}
     out["n_lines"] = len(lines)
     out["gt_kind"] = "mesh" if gt.mesh is not None else "points"
+    out["n_gt"] = int(len(gt.points))
     return out
 
 
@@ -642,23 +643,29 @@ def plot_pr_curve(linemap, gt, out_png, thresholds=None, conf=None, title: Optio
     d = pr_curve(linemap, gt, thresholds, conf)
     th_cm = d["thresholds"] * 100
     with style():
-        fig = new_figure(8.5, 5.2)
+        fig = new_figure(10.5, 5.4)
         ax = fig.add_subplot(1, 1, 1)
         colors = {"precision": "#1f77b4", "recall": "#d62728", "f": "#2ca02c"}
         for k, c in colors.items():
             ax.plot(th_cm, 100 * d["line"][k], color=c, lw=2.2, label=f"{k} (line level)")
             ax.plot(th_cm, 100 * d["junction"][k], color=c, lw=1.3, ls="--", alpha=0.8, label=f"{k} (junctions)")
         ax.axvline(5.0, color="0.4", ls=":", lw=1.2)
-        ax.text(5.0, 2, " 5 cm", color="0.3", fontsize=10)
+        ax.text(5.0, 50, "5 cm ", color="0.3", fontsize=10, rotation=90, ha="right", va="center")
         ax.set_xscale("log")
         ax.set_xlim(th_cm[0], th_cm[-1])
         ax.set_ylim(0, 101)
+        ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
         ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("distance threshold (cm, log scale)")
         ax.set_ylabel("percent")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(loc="upper left", ncol=2, framealpha=0.9, fontsize=10)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), framealpha=0.9, fontsize=10)
         ax.set_title(title or f"Line map vs ground truth ({d['gt_kind']}): {d['n_lines']} lines")
+        if d["gt_kind"] == "points":
+            ax.text(1.02, 0.0, f"GT: point cloud of\n{d['n_gt']} points; below\nits point spacing the\ncurves "
+                    "measure the\nground truth, not the map", transform=ax.transAxes, fontsize=9, color="0.35",
+                    ha="left", va="bottom")
     return save_figure(fig, out_png)
 
 

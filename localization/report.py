@@ -251,10 +251,13 @@ def plot_accuracy_bars(scenes: dict, out_png, paper: Optional[dict] = None, n_qu
         ax.set_ylabel("queries within 5 cm and 5° (%)")
         ax.grid(True, axis="y", alpha=0.35, zorder=0)
         handles = [Patch(facecolor=COLORS[k], edgecolor="black", label=f"ours, {LABELS[k]}") for k in KEYS]
-        handles += [Patch(facecolor=greys[c], edgecolor="black", hatch="//" if paper["columns"][c]["group"] != "matching-based" else None,
-                          label=f"paper: {c}") for c in cols]
+        in_paper = any(n.lower() in paper["scenes"] for n in names)
+        if in_paper:
+            handles += [Patch(facecolor=greys[c], edgecolor="black", label=f"paper: {c}",
+                              hatch="//" if paper["columns"][c]["group"] != "matching-based" else None) for c in cols]
         ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=10, framealpha=0.95,
-                  title="ours: this run; paper: full test\nsets, hloc SuperPoint+SuperGlue", title_fontsize=10)
+                  title="ours: this run; paper: full test\nsets, hloc SuperPoint+SuperGlue" if in_paper else None,
+                  title_fontsize=10)
         fig.suptitle("Accuracy at 5 cm / 5°: ours beside the paper's 7-Scenes table")
     return viz.save_figure(fig, out_png)
 
@@ -497,7 +500,12 @@ def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples:
             except KeyError:
                 notes.append(f"{n}: query {q} is not in the loaded scene; overlay skipped.")
                 continue
-            p = plot_query_overlay(r, q, view, lm, rep / f"query_{_slug(n)}_{kind}{rank}.png", lq, kind, rank)
+            try:
+                p = plot_query_overlay(r, q, view, lm, rep / f"query_{_slug(n)}_{kind}{rank}.png", lq, kind, rank)
+            except Exception as e:  # noqa: BLE001 - one bad overlay must not lose the report
+                logger.warning("Overlay of %s failed: %s", q, e)
+                notes.append(f"{n}: overlay of {q} failed ({e}).")
+                continue
             rec = r.queries[q]
             what = "largest improvement" if kind == "improved" else "largest point+line error"
             md_q.append(f"| {what} #{rank} | `{q}` | {_fmt_err(rec['point'])} | {_fmt_err(rec['point+line'])} "
