@@ -102,12 +102,10 @@ def cmd_eval(args):
     summary = path.parent / "summary.md"
     print(summary.read_text())
     print(f"results: {path}\nsummary: {summary}")
-    try:
-        from .report import write_report
+    from .report import write_report
 
-        write_report(args.out, args.dataset)
-    except ImportError:
-        pass
+    report = write_report(args.out, args.dataset, root=root)
+    print(f"report: {report}")
 
 
 def cmd_map(args):
@@ -146,6 +144,11 @@ def cmd_map_eval(args):
             gt = gt_from_depth(scene.mapping + scene.query)
     res = evaluate_linemap(lm, gt)
     print(format_metrics(res))
+    from lipmap.viz import plot_pr_curve
+
+    png = Path(args.linemap).with_name(Path(args.linemap).stem + "_pr.png")
+    plot_pr_curve(lm, gt, png)
+    print(f"precision/recall plot: {png}")
     if args.json:
         from lipmap.imageio import write_text_atomic
 
@@ -216,7 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", type=Path, default=None)
     p.set_defaults(func=cmd_map_eval)
 
-    for module, name in (("lipmap.datasets.synthetic", "synth"),):
+    for module, name in (("lipmap.datasets.synthetic", "synth"), ("localization.report", "report")):
         try:
             mod = __import__(module, fromlist=["_"])
         except ImportError:

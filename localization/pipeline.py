@@ -265,7 +265,7 @@ def run_eval(dataset: str, root, scenes, out, conf: LocalizationConfig, hloc_dir
     from lipmap.datasets import load_scene
 
     out = Path(out) / dataset
-    all_res = {"dataset": dataset, "pose_source": pose_source, "config": json.loads(json.dumps(asdict(conf), default=str)),
+    all_res = {"dataset": dataset, "root": str(Path(root).resolve()), "pose_source": pose_source, "config": json.loads(json.dumps(asdict(conf), default=str)),
                "scenes": {}, "scene_details": {}}
     failed_scenes = {}
     for name in scenes:

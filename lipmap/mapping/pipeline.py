@@ -70,22 +70,33 @@ def detect_or_import_lines(views, out_dir: Path, conf: MappingConfig, lines_sour
 def fit_planes_with_lines(scene, lines_by_view: dict, out_dir: Path, conf: MappingConfig, overwrite=False):
     """Joint line-plane optimization; writes/reads ``planes.h5`` and ``planes.ply``. Returns Planes."""
     from ..planes import io as pio
-    from ..planes.init import init_planes
-    from ..planes.optimize import get_conf as plane_conf
-    from ..planes.optimize import optimize_planes
+    from ..planes.init import depth_frames, downscale_frames, init_planes
+    from ..planes.optimize import PlaneOptConfig, _device, optimize_planes, prepare_targets
     from .supervision import LineSupervision
 
     planes_h5 = out_dir / "planes.h5"
     if planes_h5.exists() and not overwrite:
         logger.info("Skipping plane optimization: %s exists.", planes_h5)
         return pio.load_planes(planes_h5)
-    pconf = plane_conf(conf.planes)
-    planes = init_planes(scene.mapping, pconf)
+    pconf = PlaneOptConfig.preset(conf.planes, seed=conf.seed)
+    dev = _device(pconf)
+    frames = depth_frames(scene.mapping)
+    if not frames:
+        raise InputError(f"scene {scene.name}: no mapping view has depth and a pose", scene.root)
+    t0 = time.time()
+    planes = init_planes(None, pconf.init, device=dev, frames=downscale_frames(frames, pconf.init.depth_downscale))
+    t_init = time.time() - t0
+    targets = prepare_targets(frames, pconf, device=dev)
     sup = LineSupervision(lines_by_view, weight=conf.line_weight, pixels_per_line=conf.pixels_per_line,
                           use_group=conf.group_loss, seed=conf.seed)
-    planes, history = optimize_planes(scene.mapping, planes, pconf, extra_loss=sup)
-    pio.save_planes(planes_h5, planes, attrs={"config": json.dumps(asdict(conf), default=str), "history": json.dumps(history, default=float)})
+    planes, history = optimize_planes(targets, planes, pconf, extra_loss=sup)
+    history["init_seconds"] = t_init
+    history["total_seconds"] = time.time() - t0
+    pio.save_planes(planes_h5, planes, attrs={"config": pconf.to_dict(), "mapping": asdict(conf), "history": history,
+                                              "scene": scene.name, "dataset": scene.dataset})
     pio.export_planes_ply(out_dir / "planes.ply", planes)
+    logger.info("planes: %d after %d epochs in %.1f s (init %.1f s)", len(planes), pconf.epochs,
+                history["total_seconds"], t_init)
     return planes
 
 
@@ -151,6 +162,12 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
                         "timings": timings, "method": method})
     lm.save(out)
     lm.to_ply(out_dir / "linemap.ply")
+    try:
+        from ..viz import render_linemap_views
+
+        render_linemap_views(lm, scene, out_dir)
+    except Exception as e:  # noqa: BLE001 - a failed picture must not lose the map
+        logger.warning("Could not render the line map: %s", e)
     n_img = lm.supports[:, 0] if len(lm) else np.zeros(0)
     logger.info("Mapped %s with %s: %d lines (median %.0f views each) in %.1f s -> %s", scene.name, method, len(lm),
                 np.median(n_img) if len(n_img) else 0, timings["total_s"], out)
