@@ -41,9 +41,13 @@ class LineSupervision:
             self._regions[key] = line_regions(self.lines[name], camera.width, camera.height)
         return self._regions[key]
 
-    def __call__(self, view, planes, iteration: int, camera=None):
-        """Line loss of ``view`` (at ``camera``, the training resolution; default the view's)."""
-        camera = camera or view.camera
+    def __call__(self, view, planes, iteration: int, render=None, camera=None):
+        """Line loss of ``view`` at the training resolution (``camera``, else that of ``render``)."""
+        if camera is None:
+            camera = view.camera
+            if render is not None:
+                h, w = render.hits.shape[:2]
+                camera = view.camera.scaled(w / view.camera.width)
         lines = self.lines.get(view.name)
         corners = planes.corners()
         zero = corners.sum() * 0
