@@ -175,5 +175,5 @@ class Scene:
 
     @property
     def query_gt(self) -> dict:
-        """Ground-truth cam_from_world of every query, by name."""
+        """Ground-truth cam_from_world of every query, by name (None: invalid ground truth)."""
         return {v.name: v.cam_from_world for v in self.query}

@@ -29,3 +29,25 @@ def wall_scene(camera: Camera = SMALL_CAMERA):
         R = Rotation.from_euler("y", yaw, degrees=True).as_matrix()
         views.append(View(f"v{i}", camera, make_T(R, [tx, 0.02 * i, 0]), color_path=None))
     return np.stack([wall, back]), views
+
+
+def fault_point(name: str) -> None:
+    """Fault injection for the interruption tests: SIGKILL this process when LIPMAP_FAULT == name.
+
+    Placed after an artifact or a journal entry is written, so the tests can check that a run killed
+    exactly there resumes from what it left and ends with the same results as an uninterrupted run.
+    """
+    import os
+    import signal
+
+    want = os.environ.get("LIPMAP_FAULT")
+    if not want:
+        return
+    key, _, count = want.partition(":")
+    if key != name:
+        return
+    counter = f"_LIPMAP_FAULT_COUNT_{name}"
+    n = int(os.environ.get(counter, "0")) + 1
+    os.environ[counter] = str(n)
+    if n >= int(count or 1):
+        os.kill(os.getpid(), signal.SIGKILL)

@@ -98,7 +98,8 @@ def cmd_eval(args):
         root = args.root
         scenes = _scene_names(args.dataset, root, args.scenes)
     path = run_eval(args.dataset, root, scenes, args.out, conf, hloc_dir=args.hloc, pose_source=args.pose_source,
-                    register_depth=not args.no_registration, overwrite=args.overwrite, mapping_step=args.mapping_step)
+                    register_depth=not args.no_registration, overwrite=args.overwrite, mapping_step=args.mapping_step,
+                    skip_bad_frames=args.skip_bad_frames)
     summary = path.parent / "summary.md"
     print(summary.read_text())
     print(f"results: {path}\nsummary: {summary}")
@@ -112,8 +113,12 @@ def cmd_map(args):
     from lipmap.datasets import load_scene
     from lipmap.mapping.pipeline import map_scene
 
+    from lipmap.datasets.validate import check_scene
+
     scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source,
-                       register_depth=not args.no_registration, mapping_step=args.mapping_step)
+                       register_depth=not args.no_registration, mapping_step=args.mapping_step,
+                       skip_bad_frames=args.skip_bad_frames)
+    scene, _ = check_scene(scene, args.skip_bad_frames)
     path = map_scene(scene, args.out, args.preset, args.method, args.lines, args.overwrite)
     from lipmap.linemap import LineMap
 
@@ -192,6 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pose-source", default="posetxt", choices=["posetxt", "dslam", "sfm"])
     p.add_argument("--no-registration", action="store_true")
     p.add_argument("--mapping-step", type=int, default=1, help="use every k-th mapping frame")
+    p.add_argument("--skip-bad-frames", action="store_true", help="skip unreadable mapping frames (default: stop with an error)")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_eval)
 
@@ -206,6 +212,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pose-source", default="posetxt", choices=["posetxt", "dslam", "sfm"])
     p.add_argument("--no-registration", action="store_true")
     p.add_argument("--mapping-step", type=int, default=1)
+    p.add_argument("--skip-bad-frames", action="store_true", help="skip unreadable mapping frames (default: stop with an error)")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_map)
 

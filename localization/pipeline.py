@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from lipmap import InputError, logger
 from lipmap.imageio import write_text_atomic
+from lipmap.testing import fault_point
 
 from . import evaluate as ev
 from .estimate import PointLinePoseConf, PointPoseConf, estimate_pose_point_line, estimate_pose_points, subsample_matches
@@ -178,8 +179,15 @@ class _Journal:
         self.f.close()
 
 
-def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, lines_source=None, overwrite=False) -> dict:
-    """Run the whole per-scene pipeline and write the scene's results; returns the scene summary."""
+def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, lines_source=None, overwrite=False,
+                   skip_bad_frames: bool = False) -> dict:
+    """Run the whole per-scene pipeline and write the scene's results; returns the scene summary.
+
+    Bad frames are found first (lipmap.datasets.validate): a bad mapping frame stops the run with a
+    message naming it unless ``skip_bad_frames``; a bad query is reported as failed and the others run.
+    """
+    from lipmap.datasets.validate import check_scene
+
     from lipmap.linemap import LineMap
     from lipmap.lines2d import detect_lines, load_lines
     from lipmap.mapping.pipeline import get_conf as map_conf
@@ -189,10 +197,13 @@ def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, line
     out_dir.mkdir(parents=True, exist_ok=True)
     if not scene.query:
         raise InputError(f"scene {scene.name} has no query views", scene.root / "TestSplit.txt")
+    all_queries = list(scene.query)
+    scene, bad_queries = check_scene(scene, skip_bad_frames)
     t0 = time.time()
     mconf = replace(map_conf(conf.mapping), seed=conf.seed)
     linemap_path = map_scene(scene, out_dir, mconf, conf.map_method, lines_source, overwrite)
     t_map = time.time() - t0
+    fault_point("mapped")
     linemap = LineMap.load(linemap_path)
     lq = LineQuery.from_linemap(linemap)
     points = HlocPoints(Path(hloc_dir) / scene.name) if hloc_dir else BuiltinPoints(scene, out_dir / "points", conf, overwrite)
@@ -204,6 +215,8 @@ def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, line
     done = _read_journal(journal_path)
     if done:
         logger.info("Resuming %s: %d of %d queries already localized (%s).", scene.name, len(done), len(scene.query), journal_path.name)
+    for name, problem in bad_queries.items():
+        done[name] = {"name": name, "point": {"success": False}, "point+line": {"success": False}, "error": problem}
     journal = _Journal(journal_path)
     try:
         for v in tqdm(scene.query, desc=f"localize {scene.name}"):
@@ -221,15 +234,19 @@ def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, line
                 rec = {"name": v.name, "point": {"success": False}, "point+line": {"success": False}, "error": repr(e)}
             journal.write(rec)
             done[v.name] = rec
+            fault_point("query")
     finally:
         journal.close()
-    return write_scene_results(scene, out_dir, done, conf, linemap, {"map_s": t_map, **points.timings})
+    gt = {v.name: v.cam_from_world for v in all_queries}
+    skipped = {v.name: v.meta["gt_error"] for v in all_queries if v.meta.get("gt_error")}
+    return write_scene_results(scene, out_dir, done, conf, linemap, {"map_s": t_map, **points.timings}, gt, skipped)
 
 
-def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConfig, linemap, timings) -> dict:
+def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConfig, linemap, timings, gt=None,
+                        skipped=None) -> dict:
     from .hloc_io import write_results
 
-    gt = scene.query_gt
+    gt = scene.query_gt if gt is None else gt
     summary, per_query = {}, {}
     for key, fname in (("point", "results_point.txt"), ("point+line", "results_point_line.txt")):
         est = {n: (np.array(r[key]["cam_from_world"]) if r[key].get("success") else None) for n, r in recs.items()}
@@ -238,8 +255,8 @@ def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConf
         ms = [r[key]["ms"] for r in recs.values() if r[key].get("ms") is not None]
         summary[key] = ev.summarize(errs, ms)
         for n, (t, r) in errs.items():
-            per_query.setdefault(n, {})[key] = {"t_cm": t * 100 if math.isfinite(t) else None,
-                                                 "R_deg": r if math.isfinite(r) else None,
+            per_query.setdefault(n, {})[key] = {"t_cm": round(t * 100, ev.DECIMALS) if math.isfinite(t) else None,
+                                                 "R_deg": round(r, ev.DECIMALS) if math.isfinite(r) else None,
                                                  **{k: v for k, v in recs.get(n, {}).get(key, {}).items() if k != "cam_from_world"}}
     line_ms = [r["point+line"]["line_stage_ms"] for r in recs.values() if "line_stage_ms" in r["point+line"]]
     summary["point+line"]["median_ms_line_stage"] = float(np.median(line_ms)) if line_ms else None
@@ -254,13 +271,15 @@ def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConf
         "summary": summary,
         "queries": per_query,
         "errors": {n: r["error"] for n, r in recs.items() if "error" in r},
+        "skipped_invalid_gt": skipped or {},
+        "skipped_mapping_frames": scene.meta.get("skipped_frames", []),
     }
     write_text_atomic(out_dir / "results.json", json.dumps(out, indent=1, default=float))
     return out
 
 
 def run_eval(dataset: str, root, scenes, out, conf: LocalizationConfig, hloc_dir=None, pose_source="posetxt",
-             register_depth=True, overwrite=False, mapping_step: int = 1) -> Path:
+             register_depth=True, overwrite=False, mapping_step: int = 1, skip_bad_frames: bool = False) -> Path:
     """Localize every scene and write OUT/<dataset>/results.json and summary.md; returns the results path."""
     from lipmap.datasets import load_scene
 
@@ -269,9 +288,10 @@ def run_eval(dataset: str, root, scenes, out, conf: LocalizationConfig, hloc_dir
                "scenes": {}, "scene_details": {}}
     failed_scenes = {}
     for name in scenes:
-        scene = load_scene(dataset, root, name, pose_source=pose_source, register_depth=register_depth, mapping_step=mapping_step)
+        scene = load_scene(dataset, root, name, pose_source=pose_source, register_depth=register_depth,
+                           mapping_step=mapping_step, skip_bad_frames=skip_bad_frames)
         logger.info("Scene %s: %d mapping, %d query views (poses: %s).", name, len(scene.mapping), len(scene.query), pose_source)
-        res = localize_scene(scene, out / name, conf, hloc_dir, overwrite=overwrite)
+        res = localize_scene(scene, out / name, conf, hloc_dir, overwrite=overwrite, skip_bad_frames=skip_bad_frames)
         all_res["scenes"][name] = res["summary"]
         all_res["scene_details"][name] = {"n_map_lines": res["n_map_lines"], "timings": res["timings"]}
         s = res["summary"]

@@ -44,6 +44,7 @@ class SevenScenesConfig:
     query_step: int = 1
     query_list: str | None = None  # hloc list_test.txt: restrict queries to these names
     color_from_depth: np.ndarray | None = None  # override the Kinect depth-to-colour extrinsic
+    skip_bad_frames: bool = False  # a bad MAPPING frame is skipped with a warning instead of stopping
 
 
 def find_scene_dir(root, scene: str) -> Path:
@@ -156,7 +157,13 @@ def _color_path(seq_dir: Path, idx: str) -> Path:
                      seq_dir / f"frame-{idx}.color.png")
 
 
-def _read_sequence(scene_dir: Path, seq: int, step: int, camera: Camera, dcam, c_from_d, conf, pgt, meta_name):
+def _read_sequence(scene_dir: Path, seq: int, step: int, camera: Camera, dcam, c_from_d, conf, pgt, meta_name,
+                   is_query: bool = False, bad: list | None = None):
+    """Views of one sequence. A frame that cannot be used raises InputError, except:
+    - a query whose ground-truth pose is invalid is kept with ``cam_from_world=None`` and the reason
+      in ``meta["gt_error"]`` (it is skipped by the evaluation and reported, not counted);
+    - with ``conf.skip_bad_frames`` a bad mapping frame is left out and the reason appended to ``bad``.
+    """
     seq_dir = scene_dir / f"seq-{seq:02d}"
     if not seq_dir.is_dir():
         raise InputError(f"sequence folder seq-{seq:02d} listed in the split is missing", seq_dir)
@@ -165,19 +172,34 @@ def _read_sequence(scene_dir: Path, seq: int, step: int, camera: Camera, dcam, c
         raise InputError("sequence folder holds no frame-NNNNNN.pose.txt files", seq_dir)
     views = []
     for idx in idxs[::step]:
-        color = _color_path(seq_dir, idx)
-        # hloc names images with the official .color.png extension whatever the file on disk is.
-        name = f"seq-{seq:02d}/frame-{idx}.color.png"
+        name = f"seq-{seq:02d}/frame-{idx}.color.png"  # hloc's name, whatever the extension on disk
         key = _frame_key(name)
         depth = seq_dir / f"frame-{idx}.depth.png"
         normal = seq_dir / f"frame-{idx}.normal.png"
-        if conf.pose_source == "posetxt":
-            depth_from_world = invert_T(read_pose_txt(seq_dir / f"frame-{idx}.pose.txt"))
-            cfw = c_from_d @ depth_from_world if (conf.register_depth and c_from_d is not None) else depth_from_world
-        else:
-            if key not in pgt:
-                raise InputError(f"no {conf.pose_source} pose for {name}", meta_name)
-            cfw = pgt[key]
+        meta = {}
+        try:
+            color = _color_path(seq_dir, idx)
+            try:
+                if conf.pose_source == "posetxt":
+                    depth_from_world = invert_T(read_pose_txt(seq_dir / f"frame-{idx}.pose.txt"))
+                    registered = conf.register_depth and c_from_d is not None
+                    cfw = c_from_d @ depth_from_world if registered else depth_from_world
+                else:
+                    if key not in pgt:
+                        raise InputError(f"no {conf.pose_source} pose for {name}", meta_name)
+                    cfw = pgt[key]
+            except InputError as e:
+                if not is_query:
+                    raise
+                cfw, meta["gt_error"] = None, str(e)
+                logger.warning("query %s has no valid ground-truth pose (%s): it will be skipped in the evaluation", name, e)
+        except InputError as e:
+            if is_query or not conf.skip_bad_frames:
+                raise
+            logger.warning("skipping bad mapping frame %s: %s", name, e)
+            if bad is not None:
+                bad.append(str(e))
+            continue
         views.append(
             View(
                 name=name,
@@ -188,6 +210,7 @@ def _read_sequence(scene_dir: Path, seq: int, step: int, camera: Camera, dcam, c
                 normal_path=normal if normal.exists() else None,
                 depth_camera=dcam if conf.register_depth else None,
                 color_from_depth=c_from_d if conf.register_depth else None,
+                meta=meta,
             )
         )
     return views
@@ -223,10 +246,14 @@ def load_scene(root, scene: str, conf: SevenScenesConfig | None = None, dataset:
         pgt = read_pgt(pgt_path)
     train = read_split(scene_dir / "TrainSplit.txt")
     test = read_split(scene_dir / "TestSplit.txt")
+    bad: list = []
     mapping = [
-        v for s in train for v in _read_sequence(scene_dir, s, conf.mapping_step, camera, dcam, c_from_d, conf, pgt, pgt_path)
+        v for s in train
+        for v in _read_sequence(scene_dir, s, conf.mapping_step, camera, dcam, c_from_d, conf, pgt, pgt_path, False, bad)
     ]
-    query = [v for s in test for v in _read_sequence(scene_dir, s, conf.query_step, camera, dcam, c_from_d, conf, pgt, pgt_path)]
+    query = [
+        v for s in test for v in _read_sequence(scene_dir, s, conf.query_step, camera, dcam, c_from_d, conf, pgt, pgt_path, True)
+    ]
     if conf.query_list:
         wanted = [ln.split()[0] for ln in Path(conf.query_list).read_text().splitlines() if ln.strip()]
         by_key = {_frame_key(v.name): v for v in query}
@@ -251,5 +278,6 @@ def load_scene(root, scene: str, conf: SevenScenesConfig | None = None, dataset:
         pose_source=conf.pose_source,
         gt_mesh=gt_mesh if gt_mesh.exists() else None,
         depth_registered=bool(meta.get("depth_registered", False)) or conf.register_depth,
-        meta={**meta, "color_from_depth": None if c_from_d is None else np.asarray(c_from_d).tolist()},
+        meta={**meta, "color_from_depth": None if c_from_d is None else np.asarray(c_from_d).tolist(),
+              "skipped_frames": bad},
     )

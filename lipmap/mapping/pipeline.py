@@ -95,6 +95,9 @@ def fit_planes_with_lines(scene, lines_by_view: dict, out_dir: Path, conf: Mappi
     pio.save_planes(planes_h5, planes, attrs={"config": pconf.to_dict(), "mapping": asdict(conf), "history": history,
                                               "scene": scene.name, "dataset": scene.dataset})
     pio.export_planes_ply(out_dir / "planes.ply", planes)
+    from ..testing import fault_point
+
+    fault_point("planes")
     logger.info("planes: %d after %d epochs in %.1f s (init %.1f s)", len(planes), pconf.epochs,
                 history["total_seconds"], t_init)
     return planes

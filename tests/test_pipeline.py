@@ -1,0 +1,122 @@
+"""End-to-end localization pipeline on a mini synthetic scene: schema, bad input, resume, determinism."""
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from lipmap import InputError
+from lipmap.datasets.synthetic import SynthConfig, generate_scene
+from localization.pipeline import LocalizationConfig, run_eval
+
+MINI = SynthConfig("mini", 240, 180, 196.875, 196.875, 120.0, 90.0, n_mapping=16, n_query=6, texels_per_m=200.0)
+CONF = LocalizationConfig(points="sift-n2048", map_method="lift", num_retrieved=5)
+
+
+@pytest.fixture(scope="module")
+def mini_root(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("mini")
+    generate_scene(root, seed=1, preset=MINI)
+    return root
+
+
+def _copy(mini_root, tmp_path) -> Path:
+    shutil.copytree(mini_root, tmp_path / "data")
+    return tmp_path / "data"
+
+
+def _numbers(results: dict) -> dict:
+    """results.json without the timing fields (which differ run to run)."""
+    out = {}
+    for scene, s in results["scenes"].items():
+        for k, v in s.items():
+            out[(scene, k)] = {kk: vv for kk, vv in v.items() if "ms" not in kk}
+    return out
+
+
+def test_eval_end_to_end(mini_root, tmp_path):
+    path = run_eval("synthetic", mini_root, ["room-s1"], tmp_path / "out", CONF)
+    res = json.loads(path.read_text())
+    s = res["scenes"]["room-s1"]
+    for key in ("point", "point+line"):
+        for field in ("median_t_cm", "median_R_deg", "acc_5cm_5deg", "n_queries", "n_failed", "median_ms_per_query"):
+            assert field in s[key]
+        assert s[key]["n_queries"] == 6
+    assert s["point"]["n_failed"] == 0 and s["point"]["median_t_cm"] < 3.0
+    scene_dir = tmp_path / "out" / "synthetic" / "room-s1"
+    lines = (scene_dir / "results_point_line.txt").read_text().split("\n")
+    assert len([l for l in lines if l.strip()]) == 6 and len(lines[0].split()) == 8
+    assert "room-s1" in (tmp_path / "out" / "synthetic" / "summary.md").read_text()
+
+
+def test_bad_query_is_reported_and_others_kept(mini_root, tmp_path):
+    root = _copy(mini_root, tmp_path)
+    seq = root / "room-s1" / "seq-02"
+    (seq / "frame-000001.color.png").write_bytes(b"\x89PNG truncated")
+    (seq / "frame-000002.pose.txt").write_text("nan 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    res = json.loads((run_eval("synthetic", root, ["room-s1"], tmp_path / "out", CONF).parent / "room-s1" / "results.json").read_text())
+    assert "frame-000001.color.png" in res["errors"]["seq-02/frame-000001.color.png"]
+    assert "cannot be decoded" in res["errors"]["seq-02/frame-000001.color.png"]
+    assert "seq-02/frame-000002.color.png" in res["skipped_invalid_gt"]
+    s = res["summary"]["point"]
+    assert s["n_queries"] == 5 and s["n_failed"] == 1  # the corrupt one fails, the invalid-GT one is not counted
+    good = [q for n, q in res["queries"].items() if n != "seq-02/frame-000001.color.png"]
+    assert all(q["point"]["t_cm"] is not None and q["point"]["t_cm"] < 5 for q in good)
+
+
+def test_bad_mapping_frame_stops_or_is_skipped(mini_root, tmp_path):
+    root = _copy(mini_root, tmp_path)
+    bad = root / "room-s1" / "seq-01" / "frame-000003.color.png"
+    bad.write_bytes(b"garbage")
+    with pytest.raises(InputError, match="frame-000003.color.png.*skip-bad-frames"):
+        run_eval("synthetic", root, ["room-s1"], tmp_path / "out", CONF)
+    path = run_eval("synthetic", root, ["room-s1"], tmp_path / "out2", CONF, skip_bad_frames=True)
+    res = json.loads((path.parent / "room-s1" / "results.json").read_text())
+    assert any("frame-000003.color.png" in m for m in res["skipped_mapping_frames"])
+    assert res["summary"]["point"]["n_failed"] == 0
+
+
+def _cli(args, env=None):
+    return subprocess.run([sys.executable, "-m", "localization.cli", *args], capture_output=True, text=True,
+                          env={**os.environ, **(env or {})}, timeout=600)
+
+
+def test_sigkill_during_localization_then_resume_gives_same_results(mini_root, tmp_path):
+    args = ["eval", "--dataset", "synthetic", "--root", str(mini_root), "--scenes", "room-s1", "--method", "lift",
+            "--points", "sift-n2048"]
+    ref = _cli(args + ["--out", str(tmp_path / "ref")])
+    assert ref.returncode == 0, ref.stderr[-2000:]
+    killed = _cli(args + ["--out", str(tmp_path / "run")], env={"LIPMAP_FAULT": "query:3"})
+    assert killed.returncode == -9  # SIGKILL after the third query was journaled
+    journal = next((tmp_path / "run" / "synthetic" / "room-s1").glob("queries-*.jsonl"))
+    assert len(journal.read_text().splitlines()) == 3
+    assert not (tmp_path / "run" / "synthetic" / "results.json").exists()
+    again = _cli(args + ["--out", str(tmp_path / "run")])
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert "Resuming room-s1: 3 of 6" in again.stderr
+    a = json.loads((tmp_path / "ref" / "synthetic" / "results.json").read_text())
+    b = json.loads((tmp_path / "run" / "synthetic" / "results.json").read_text())
+    assert _numbers(a) == _numbers(b)
+
+
+def test_truncated_journal_line_is_redone(mini_root, tmp_path):
+    out = tmp_path / "out"
+    run_eval("synthetic", mini_root, ["room-s1"], out, CONF)
+    journal = next((out / "synthetic" / "room-s1").glob("queries-*.jsonl"))
+    lines = journal.read_text().splitlines()
+    journal.write_text("\n".join(lines[:-1]) + "\n" + lines[-1][: len(lines[-1]) // 2])  # a write cut by a kill
+    a = json.loads((out / "synthetic" / "results.json").read_text())
+    run_eval("synthetic", mini_root, ["room-s1"], out, CONF)
+    b = json.loads((out / "synthetic" / "results.json").read_text())
+    assert _numbers(a) == _numbers(b)
+
+
+def test_same_seed_same_numbers(mini_root, tmp_path):
+    a = json.loads(run_eval("synthetic", mini_root, ["room-s1"], tmp_path / "a", CONF).read_text())
+    b = json.loads(run_eval("synthetic", mini_root, ["room-s1"], tmp_path / "b", CONF).read_text())
+    assert _numbers(a) == _numbers(b)
