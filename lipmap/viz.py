@@ -145,7 +145,7 @@ def visible_line_indices(lines3d, cam_from_world, camera, corners=None, depth=No
     """Indices of map lines in front of the camera, inside the image and, when possible, not occluded.
 
     Occlusion test, first available of: the map's planes (``corners`` (K, 4, 3) or a built
-    ``localization.linequery.LineQuery`` - the line query's own visibility test), the view's depth
+    ``lipmap.mapping.assign.LineVisibility`` - the line query's own visibility test), the view's depth
     map ``depth`` (H, W) (metres, 0 unknown; ``lipmap.mapping.extract.visible_mask`` on 5 samples per
     line, 3 must pass, as the track builder does), else none.
     """
@@ -153,9 +153,9 @@ def visible_line_indices(lines3d, cam_from_world, camera, corners=None, depth=No
     T = np.asarray(cam_from_world, dtype=float)
     if line_query is not None or corners is not None:
         if line_query is None:
-            from localization.linequery import LineQuery  # the visibility test lives with the line query
+            from .mapping.assign import LineVisibility
 
-            line_query = LineQuery(lines3d, corners)
+            line_query = LineVisibility(lines3d, corners)
         return line_query.visible_lines(T, camera, tol)
     _, ok = project_to_image(lines3d, T, camera)
     idx = np.flatnonzero(ok)
@@ -590,9 +590,9 @@ def render_linemap_views(linemap, scene, out_dir, linemap_png: str = "linemap.pn
     up = up_direction(views, linemap.lines.reshape(-1, 3))
     line_query = None
     if corners is not None:
-        from localization.linequery import LineQuery
+        from .mapping.assign import LineVisibility
 
-        line_query = LineQuery(linemap.lines, corners)
+        line_query = LineVisibility(linemap.lines, corners)
     fig = linemap_figure(linemap, view, views, corners, line_query, up)
     written.append(save_figure(fig, out_dir / linemap_png))
     if corners is not None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lipmap import geometry as geo
-from lipmap.mapping.assign import PlaneRaycaster, best_edges, line_regions, pixel_rays_world
+from lipmap.mapping.assign import PlaneRaycaster, best_edges, line_regions, pixel_rays_world, visible_lines
 
 
 @dataclass
@@ -102,19 +102,7 @@ class LineQuery:
 
     def visible_lines(self, T, camera, tol: float) -> np.ndarray:
         """Indices of map lines in front of the camera, inside the image, and not hidden by the planes."""
-        proj, valid = geo.project_segments(self.lines, T, camera)
-        clipped, inside = geo.clip_segments_to_image(np.where(valid[:, None, None], proj, 0), camera.width, camera.height)
-        idx = np.flatnonzero(valid & inside)
-        if self.caster is None or len(idx) == 0:
-            return idx
-        C = -T[:3, :3].T @ T[:3, 3]
-        pts = geo.sample_segments(self.lines[idx], 3)  # (n, 3, 3): endpoints and midpoint
-        vec = pts - C
-        dist = np.linalg.norm(vec, axis=-1)
-        dirs = vec / np.maximum(dist[..., None], 1e-9)
-        _, hit = self.caster.first_hit(np.broadcast_to(C, dirs.reshape(-1, 3).shape).copy(), dirs.reshape(-1, 3))
-        unocc = hit.reshape(dist.shape) >= dist - tol - 0.02 * dist
-        return idx[unocc.sum(1) >= 2]
+        return visible_lines(self.lines, T, camera, self.caster, tol)
 
     def _projection(self, q, T, camera, conf):
         vis = self.visible_lines(T, camera, conf.occlusion_tol)

@@ -489,9 +489,9 @@ def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples:
             continue
         lq = None
         if viz.linemap_corners(lm, r.folder) is not None:
-            from .linequery import LineQuery
+            from lipmap.mapping.assign import LineVisibility
 
-            lq = LineQuery(lm.lines, viz.linemap_corners(lm, r.folder))
+            lq = LineVisibility(lm.lines, viz.linemap_corners(lm, r.folder))
         md_q += [f"### {n}", "", "| example | query | point only | point+line | line inliers |", "|---|---|---|---|---|"]
         imgs = []
         for kind, rank, q in ex:

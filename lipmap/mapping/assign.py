@@ -214,3 +214,45 @@ def first_hit_torch(corners, origins, dirs, chunk: int = 2048):
             best_t[s : s + chunk] = tmin
             best_k[s : s + chunk] = torch.where(torch.isfinite(tmin), kmin, torch.full_like(kmin, -1))
         return best_k, best_t
+
+
+def visible_lines(lines3d: np.ndarray, cam_from_world: np.ndarray, camera, caster: "PlaneRaycaster | None" = None,
+                  tol: float = 0.05) -> np.ndarray:
+    """Indices of 3D lines in front of the camera, inside the image and not hidden by the planes.
+
+    A line counts as visible when at least two of its endpoints and midpoint are not occluded: the
+    first plane hit on the ray towards the point lies no nearer than the point (minus ``tol`` metres
+    and 2 % of the distance). Without ``caster`` only the frustum test is made.
+
+    Args:
+        lines3d: :math:`(N, 2, 3)` world segments; caster: the planes' :class:`PlaneRaycaster`.
+
+    Returns:
+        int array of indices into ``lines3d``.
+    """
+    lines3d = np.asarray(lines3d, dtype=float).reshape(-1, 2, 3)
+    proj, valid = geo.project_segments(lines3d, cam_from_world, camera)
+    _, inside = geo.clip_segments_to_image(np.where(valid[:, None, None], proj, 0), camera.width, camera.height)
+    idx = np.flatnonzero(valid & inside)
+    if caster is None or len(idx) == 0:
+        return idx
+    T = np.asarray(cam_from_world, dtype=float)
+    C = -T[:3, :3].T @ T[:3, 3]
+    pts = geo.sample_segments(lines3d[idx], 3)  # endpoints and midpoint
+    vec = pts - C
+    dist = np.linalg.norm(vec, axis=-1)
+    dirs = vec / np.maximum(dist[..., None], 1e-9)
+    _, hit = caster.first_hit(np.broadcast_to(C, dirs.reshape(-1, 3).shape).copy(), dirs.reshape(-1, 3))
+    unocc = hit.reshape(dist.shape) >= dist - tol - 0.02 * dist
+    return idx[unocc.sum(1) >= 2]
+
+
+class LineVisibility:
+    """3D lines and their planes' raycaster, for repeated visibility tests from many cameras."""
+
+    def __init__(self, lines3d: np.ndarray, corners: np.ndarray | None = None):
+        self.lines = np.asarray(lines3d, dtype=float).reshape(-1, 2, 3)
+        self.caster = PlaneRaycaster(corners) if corners is not None and len(corners) else None
+
+    def visible_lines(self, cam_from_world, camera, tol: float = 0.05) -> np.ndarray:
+        return visible_lines(self.lines, cam_from_world, camera, self.caster, tol)
