@@ -26,7 +26,8 @@ class PlaneInitConfig:
     n_planes: int = 2000  # faces after decimation = planes
     voxel_size: float = 0.02  # metres; the reference uses ~1 cm (use 0.01 for the paper preset)
     trunc_voxels: float = 4.0  # TSDF truncation distance in voxels
-    depth_downscale: int = 2  # fuse depth maps at 1 / this resolution (speed; voxels are coarser anyway)
+    depth_downscale: int = 1  # fuse depth at 1 / this resolution; 0 = auto (the cost is per voxel, not per pixel)
+    target_width: int = 160  # with depth_downscale = 0: the integer factor bringing the width closest to this
     max_depth: float = 6.0  # metres; farther depth is ignored (sensor noise grows with depth^2)
     bounds_percentile: float = 0.5  # scene box = [p, 100 - p] percentiles of the fused points, plus a margin
     max_voxels: int = 40_000_000  # coarsen the voxels if the scene box would need more
@@ -54,13 +55,20 @@ class DepthFrame(NamedTuple):
     depth: np.ndarray  # (h, w) float32 metres, 0 = invalid
 
 
-def downscale_frames(frames: list, downscale: int) -> list:
-    """The same frames with depth resized to 1 / downscale (nearest sampling)."""
-    if downscale <= 1:
-        return list(frames)
+def auto_downscale(width: int, target_width: int) -> int:
+    """The integer factor that brings ``width`` closest to ``target_width`` (>= 1)."""
+    return max(1, int(round(width / max(target_width, 1))))
+
+
+def downscale_frames(frames: list, downscale: int, target_width: int = 160) -> list:
+    """The same frames with depth resized to 1 / downscale (nearest sampling; 0 = auto, see :func:`auto_downscale`)."""
     out = []
     for f in frames:
-        cam = f.camera.scaled(1.0 / downscale)
+        ds = downscale or auto_downscale(f.camera.width, target_width)
+        if ds <= 1:
+            out.append(f)
+            continue
+        cam = f.camera.scaled(1.0 / ds)
         out.append(f._replace(camera=cam, depth=resize_nearest(f.depth, cam.width, cam.height)))
     return out
 
@@ -128,11 +136,12 @@ def fuse_tsdf(frames, conf: PlaneInitConfig, device=None) -> tuple[np.ndarray, n
         Xc = grid @ Tt[:3, :3].T + Tt[:3, 3]
         z = Xc[:, 2]
         zs = z.clamp(min=1e-6)
-        col = torch.floor(cam.fx * Xc[:, 0] / zs + cam.cx).long()
-        row = torch.floor(cam.fy * Xc[:, 1] / zs + cam.cy).long()
-        inside = (z > 1e-3) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+        # continuous pixel coordinates with pixel centres at integers (COLMAP centre = +0.5)
+        u = cam.fx * Xc[:, 0] / zs + cam.cx - 0.5
+        v = cam.fy * Xc[:, 1] / zs + cam.cy - 0.5
+        inside = (z > 1e-3) & (u >= 0) & (u <= cam.width - 1) & (v >= 0) & (v <= cam.height - 1)
         idx = inside.nonzero().squeeze(1)
-        d = torch.as_tensor(depth, **f32).reshape(-1)[row[idx] * cam.width + col[idx]]
+        d = _sample_depth(torch.as_tensor(depth, **f32), u[idx], v[idx])
         sdf = d - z[idx]
         # voxels far behind the surface stay unobserved, so no false surface appears there
         upd = (d > 0) & (sdf >= -trunc)
@@ -144,12 +153,41 @@ def fuse_tsdf(frames, conf: PlaneInitConfig, device=None) -> tuple[np.ndarray, n
     from skimage.measure import marching_cubes
 
     vol = tsdf.reshape(*dims).cpu().numpy()
-    mask = (weight > 0).reshape(*dims).cpu().numpy()
+    obs = (weight > 0).reshape(*dims).cpu().numpy()
+    # require all 8 corners of a cube observed, or the step from the band behind a surface (-1)
+    # to never-observed voxels (+1) makes false walls; skimage (0.26, checked by the tests) reads
+    # the mask of cube [i, i+1] at its far corner i+1
+    mask = np.zeros_like(obs)
+    c = obs[:-1, :-1, :-1].copy()
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                c &= obs[dx : dims[0] - 1 + dx, dy : dims[1] - 1 + dy, dz : dims[2] - 1 + dz]
+    mask[1:, 1:, 1:] = c
     if not ((vol < 0) & mask).any() or not ((vol > 0) & mask).any():
         raise InputError("the fused depth holds no surface (TSDF has no zero crossing)")
     verts, faces, _, _ = marching_cubes(vol, level=0.0, mask=mask)
     verts = verts * voxel + lo
     return verts.astype(np.float64), faces.astype(np.int64)
+
+
+def _sample_depth(depth: torch.Tensor, u: torch.Tensor, v: torch.Tensor, max_rel_spread: float = 0.05) -> torch.Tensor:
+    """Bilinear depth at (u, v) (pixel centres at integers), nearest where the 4 neighbours are not
+    all valid or straddle a depth discontinuity (spread > max_rel_spread x depth); 0 = invalid."""
+    H, W = depth.shape
+    u0 = u.floor().long().clamp(0, W - 1)
+    v0 = v.floor().long().clamp(0, H - 1)
+    u1, v1 = (u0 + 1).clamp(max=W - 1), (v0 + 1).clamp(max=H - 1)
+    a, b = u - u0, v - v0
+    flat = depth.reshape(-1)
+    d00, d01 = flat[v0 * W + u0], flat[v0 * W + u1]
+    d10, d11 = flat[v1 * W + u0], flat[v1 * W + u1]
+    q = torch.stack([d00, d01, d10, d11], 1)
+    lo, hi = q.amin(1), q.amax(1)
+    bil = (1 - b) * ((1 - a) * d00 + a * d01) + b * ((1 - a) * d10 + a * d11)
+    near = flat[v.round().long().clamp(0, H - 1) * W + u.round().long().clamp(0, W - 1)]
+    smooth = (lo > 0) & (hi - lo <= max_rel_spread * lo)
+    return torch.where(smooth, bil, near)
 
 
 def decimate(vertices: np.ndarray, faces: np.ndarray, n_faces: int, min_component_faces: int = 0):
@@ -163,14 +201,47 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, n_faces: int, min_componen
         keep = np.concatenate([c for c in comps if len(c) >= min_component_faces] or [np.arange(len(mesh.faces))])
         mesh = trimesh.Trimesh(mesh.vertices, mesh.faces[np.sort(keep)], process=True)
     V, F = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
-    # one pass often stalls at ~2x the target on fragmented TSDF meshes; a few more passes reach it
-    for _ in range(6):
-        if len(F) <= 1.05 * n_faces:
+    area = float(mesh.area)
+
+    def fqms(V, F):
+        # one pass often stalls above the target on TSDF meshes; a few more passes get further
+        for _ in range(6):
+            if len(F) <= 1.05 * n_faces:
+                break
+            n0 = len(F)
+            V, F = fast_simplification.simplify(V, F.astype(np.int32), target_count=int(n_faces))
+            if len(F) >= 0.99 * n0:
+                break
+        return V, np.asarray(F, np.int64)
+
+    V, F = fqms(V, F)
+    # still stalled (collapses at sharp creases would flip the chamfer faces marching cubes puts
+    # there): cluster vertices on a grid about the target face size, then collapse again
+    cell = 0.25 * np.sqrt(area / max(n_faces, 1))
+    for _ in range(4):
+        if len(F) <= 1.2 * n_faces:
             break
-        V, F = fast_simplification.simplify(V, F.astype(np.int32), target_count=int(n_faces))
+        V, F = _cluster_vertices(V, F, cell)
+        V, F = fqms(V, F)
+        cell *= 1.5
     mesh = trimesh.Trimesh(V, F, process=True)
     mesh.update_faces(mesh.nondegenerate_faces())
     return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
+def _cluster_vertices(V: np.ndarray, F: np.ndarray, cell: float):
+    """Vertex clustering: merge the vertices of each grid cell into their mean; drop collapsed faces."""
+    key = np.floor(V / cell).astype(np.int64)
+    _, inv = np.unique(key, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    n = inv.max() + 1
+    Vn = np.zeros((n, 3))
+    np.add.at(Vn, inv, V)
+    Vn /= np.bincount(inv, minlength=n)[:, None]
+    Fn = inv[F]
+    ok = (Fn[:, 0] != Fn[:, 1]) & (Fn[:, 1] != Fn[:, 2]) & (Fn[:, 0] != Fn[:, 2])
+    Fn = np.unique(np.sort(Fn[ok], axis=1), axis=0, return_index=True)[1]
+    return Vn, inv[F][ok][np.sort(Fn)]
 
 
 def planes_from_mesh(vertices: np.ndarray, faces: np.ndarray, radius_scale: float = 0.3, device=None) -> Planes:
@@ -197,7 +268,7 @@ def init_planes(views, conf: Optional[PlaneInitConfig] = None, device=None, fram
     """
     conf = conf or PlaneInitConfig()
     if frames is None:
-        frames = depth_frames(views, conf.depth_downscale)
+        frames = downscale_frames(depth_frames(views), conf.depth_downscale, conf.target_width)
     V, F = fuse_tsdf(frames, conf, device=device)
     logger.info("plane init: fused mesh %d vertices, %d faces", len(V), len(F))
     V, F = decimate(V, F, conf.n_planes, conf.min_component_faces)

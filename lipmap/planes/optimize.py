@@ -26,7 +26,7 @@ import torch
 from .. import logger
 from ..errors import InputError
 from ..normals import normals_from_depth
-from .init import DepthFrame, PlaneInitConfig, depth_frames, downscale_frames, init_planes, resize_nearest
+from .init import DepthFrame, PlaneInitConfig, auto_downscale, depth_frames, downscale_frames, init_planes, resize_nearest
 from .io import export_planes_ply, save_planes
 from .primitives import MAX_HITS, R_MAX, R_MIN, Planes
 from .render import TILE_SIZE, RenderOutput, lambda_schedule, rasterize_planes
@@ -38,7 +38,8 @@ class PlaneOptConfig:
 
     name: str = "custom"
     epochs: int = 60
-    downscale: int = 1  # optimize at 1 / downscale of the view resolution
+    downscale: int = 1  # optimize at 1 / downscale of the view resolution; 0 = from target_width
+    target_width: int = 160  # with downscale = 0: the integer factor that brings the width closest to this
     lr_center: float = 1e-3
     lr_quat: float = 1e-3
     lr_radii: float = 1e-3
@@ -47,9 +48,12 @@ class PlaneOptConfig:
     plane_weight: float = 10.0  # total = plane_weight * decay * plane_loss + extra
     decay_floor: float = 0.1  # decay = max(exp(-i / max_iters), decay_floor)
     max_depth: float = 6.0  # ignore target depth beyond this (metres)
-    normal_step: int = 2  # neighbour distance (full-resolution pixels) for normals from depth
+    normal_step: int = 0  # neighbour distance (full-res pixels) for normals from depth; 0 = width // 80
+    # (8 px at 640x480: Kinect depth quantization makes 2-px normals mostly noise)
     max_hits: int = MAX_HITS
     tile_size: int = TILE_SIZE
+    lambda_min: float = 0.0  # clip the splat sharpness schedule (0 / 1500 = the reference schedule)
+    lambda_max: float = 1500.0
     prune_min_radius: float = 1.25e-3
     prune_unseen: bool = True
     split: bool = True
@@ -77,18 +81,25 @@ class PlaneOptConfig:
 
 
 def _fast() -> PlaneOptConfig:
-    # Tests and the demo: 1/4 resolution (160x120 for VGA), few epochs, larger steps so that
-    # ~300 iterations converge. The split threshold is matched to our mean-over-pixels losses
-    # at this resolution (measured; see the report in the benchmarks folder).
+    # Tests and the demo (CPU): ~320 px wide images, 8 epochs. Measured on the synthetic room-s3
+    # (30 views, 320x240; query-view median depth error, see the planes report):
+    # - lr 1e-2 instead of 1e-3: Adam moves a parameter by ~lr per step, and 240 steps at 1e-3
+    #   cannot grow 2 cm init radii to wall size (2.5 cm -> 0.9 cm median error);
+    # - lambda clipped to >= 300: the reference's soft start (lambda 37..300, splats reaching
+    #   3-27 cm beyond each rectangle) costs ~20 s per epoch on CPU and was worse here (1.6 vs 2.5 cm);
+    # - no splitting: within 8 epochs every split threshold we tried (0.2, 0.6, 1.5) made the
+    #   result worse (4.5, 2.2, 1.1 cm vs 0.9 cm without).
     return PlaneOptConfig(
         name="fast",
         epochs=8,
-        downscale=4,
-        lr_center=3e-3,
-        lr_quat=3e-3,
-        lr_radii=3e-3,
-        split_grad_threshold=0.2,
-        init=PlaneInitConfig(n_planes=2000, voxel_size=0.02, depth_downscale=4),
+        downscale=0,
+        target_width=320,
+        lr_center=1e-2,
+        lr_quat=1e-2,
+        lr_radii=1e-2,
+        lambda_min=300.0,
+        split=False,
+        init=PlaneInitConfig(n_planes=2000, voxel_size=0.02, depth_downscale=1),
     )
 
 
@@ -125,10 +136,12 @@ def prepare_targets(frames: list, conf: PlaneOptConfig, device=None) -> list:
     """
     out = []
     for f in frames:
-        cam = f.camera if conf.downscale <= 1 else f.camera.scaled(1.0 / conf.downscale)
+        ds = conf.downscale or auto_downscale(f.camera.width, conf.target_width)
+        cam = f.camera if ds <= 1 else f.camera.scaled(1.0 / ds)
         normals = f.view.load_normals() if getattr(f.view, "normal_path", None) is not None else None
         if normals is None:
-            normals = normals_from_depth(f.depth, f.camera, step=conf.normal_step)
+            step = conf.normal_step or max(2, f.camera.width // 80)
+            normals = normals_from_depth(f.depth, f.camera, step=step)
         depth = resize_nearest(f.depth, cam.width, cam.height)
         normals = resize_nearest(normals, cam.width, cam.height)
         depth = np.where(np.isfinite(depth) & (depth > 0) & (depth <= conf.max_depth), depth, 0).astype(np.float32)
@@ -183,6 +196,7 @@ class PlaneIndexMap:
     n_old: int
     n_pruned: int = 0
     n_split: int = 0
+    n_unseen: int = 0  # of n_pruned: valid and large enough, but seen by no view
 
     def old_to_new(self) -> torch.Tensor:
         """:math:`(K_{old}, 4)` int64: the new indices of each old plane (-1 padded; all -1 = pruned)."""
@@ -216,7 +230,9 @@ def prune_and_split(
     dev = planes.device
     with torch.no_grad():
         keep = planes.valid_mask() & (torch.nan_to_num(planes.radii, nan=-1.0).min(1).values > min_radius)
+        n_unseen = 0
         if seen is not None:
+            n_unseen = int((keep & ~seen.to(dev)).sum())
             keep &= seen.to(dev)
         base = planes.detach()[keep].recentered()
         parent = keep.nonzero().squeeze(1)
@@ -263,7 +279,7 @@ def prune_and_split(
                 stay = ~split
                 base = Planes.cat([base[stay]] + children)
                 parent = torch.cat([parent[stay]] + parents_new)
-    return base, PlaneIndexMap(parent, K, n_pruned, n_split)
+    return base, PlaneIndexMap(parent, K, n_pruned, n_split, n_unseen)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -352,7 +368,7 @@ def optimize_planes(
     max_iters = conf.epochs * n_views
     split_stop = int(conf.split_stop_frac * max_iters)
     rng = np.random.default_rng(conf.seed)
-    hist = {k: [] for k in ("loss", "depth", "normal", "planes", "pruned", "split", "lambda", "seconds", "skipped")}
+    hist = {k: [] for k in ("loss", "depth", "normal", "planes", "pruned", "unseen", "split", "lambda", "seconds", "skipped")}
     it = 0
     bar = None
     if conf.progress:
@@ -369,7 +385,7 @@ def optimize_planes(
         n_used = skipped = 0
         for vi in rng.permutation(n_views):
             tgt = targets[vi]
-            lam = lambda_schedule(it, max_iters)
+            lam = lambda_schedule(it, max_iters, conf.lambda_min, conf.lambda_max)
             out = rasterize_planes(
                 params[0], params[1], params[2], tgt.cam_from_world, tgt.camera.params,
                 tgt.camera.width, tgt.camera.height, lam, conf.max_hits, conf.tile_size,
@@ -399,7 +415,7 @@ def optimize_planes(
                     params[0].copy_(rec.center)
                     params[2].copy_(rec.radii)
                     params[1].div_(params[1].norm(dim=1, keepdim=True).clamp(min=1e-12))
-                sums["loss"] += float(total)
+                sums["loss"] += float(total.detach())
                 sums["depth"] += pl[1].get("depth", 0.0) if pl else 0.0
                 sums["normal"] += pl[1].get("normal", 0.0) if pl else 0.0
                 n_used += 1
@@ -411,6 +427,10 @@ def optimize_planes(
                 bar.set_postfix(loss=f"{float(total) if total is not None else float('nan'):.4f}", planes=K)
         # once per epoch: prune and split (the index map carries the Adam moments along)
         radii_grad = gsum / gcnt.clamp(min=1)[:, None]
+        seen_g = radii_grad[gcnt > 0].max(1).values
+        if len(seen_g):
+            q = torch.quantile(seen_g.float(), torch.tensor([0.5, 0.9, 0.99], device=dev)).tolist()
+            hist.setdefault("radii_grad_q50_q90_q99", []).append([round(x, 4) for x in q])
         do_split = conf.split and it <= split_stop and epoch < conf.epochs - 1
         current = Planes(*(p.detach() for p in params))
         new, imap = prune_and_split(
@@ -436,8 +456,9 @@ def optimize_planes(
         hist["normal"].append(sums["normal"] / n)
         hist["planes"].append(len(new))
         hist["pruned"].append(imap.n_pruned)
+        hist["unseen"].append(imap.n_unseen)
         hist["split"].append(imap.n_split)
-        hist["lambda"].append(lambda_schedule(it - 1, max_iters))
+        hist["lambda"].append(lambda_schedule(it - 1, max_iters, conf.lambda_min, conf.lambda_max))
         hist["seconds"].append(time.time() - t0)
         hist["skipped"].append(skipped)
         logger.debug(
@@ -469,7 +490,7 @@ def fit_planes(scene, out_dir, conf: Optional[PlaneOptConfig] = None, overwrite:
     frames = depth_frames(scene.mapping)  # loaded once, full resolution
     if not frames:
         raise InputError(f"scene {scene.name}: no mapping view has depth and a pose", scene.root)
-    planes = init_planes(None, conf.init, device=dev, frames=downscale_frames(frames, conf.init.depth_downscale))
+    planes = init_planes(None, conf.init, device=dev, frames=downscale_frames(frames, conf.init.depth_downscale, conf.init.target_width))
     t_init = time.time() - t0
     targets = prepare_targets(frames, conf, device=dev)
     planes, hist = optimize_planes(targets, planes, conf)

@@ -42,14 +42,16 @@ from .primitives import (
 TILE_SIZE = 8
 
 
-def lambda_schedule(iteration: int, max_iters: int) -> float:
+def lambda_schedule(iteration: int, max_iters: int, lam_min: float = 0.0, lam_max: float = 1500.0) -> float:
     """Sharpness of the splat fall-off: ``5 * min(20 * exp(iter / (max_iters // 10) - 1), 300)``.
 
     Starts at 5 * 20 / e = 36.8 (weight 1e-4 reached ~27 cm outside a rectangle) and saturates at
     1500 (6.6 mm) from 37 % of the iterations on (reference-code schedule, see DESIGN.md).
+    ``lam_min`` / ``lam_max`` clip it (defaults: the reference schedule unchanged).
     """
     period = max(max_iters // 10, 1)
-    return 5.0 * min(20.0 * math.exp(iteration / period - 1.0), 300.0)
+    lam = 5.0 * min(20.0 * math.exp(min(iteration / period - 1.0, 50.0)), 300.0)
+    return float(min(max(lam, lam_min), lam_max))
 
 
 @dataclass

@@ -1,0 +1,213 @@
+"""Plane renderer speed: forward + backward of one training iteration, one JSON line per configuration.
+
+    python benchmarks/perf/bench_raster.py                # CPU (2 threads), CUDA too when present
+    python benchmarks/perf/bench_raster.py --quick        # 320x240 / 2000 planes only
+
+Planes: initialized from the real RedKitchen depth (``../shared/data/7scenes-redkitchen-mini``,
+TSDF + decimation to N faces, exactly as the pipeline does; the ``source`` field says
+``redkitchen-init``) and rendered from a mapping camera; without that data, a seeded random box
+room (``source: box-room``: planes on the walls/floor/ceiling of a 5 x 4 x 2.7 m room, 3-15 cm
+radii, seen from inside). Init planes have small radii (0.3 x the face size); ``--grow`` scales
+them (default 2.5, about the coverage after optimization; ``grow`` is printed).
+
+Timed: ``rasterize_planes`` (selection + differentiable compositing) and ``backward`` of an L1
+depth + normal loss, median of ``--repeat`` runs after ``--warmup``. ``lambda`` is the splat
+sharpness: 1500 is the value for the last ~60 % of a training run, 300 the early part (the
+reference schedule starts at 37, where splats reach 27 cm beyond each rectangle and the cost grows
+several-fold; run ``--lam 37`` to see it).
+
+Peak memory: CUDA ``torch.cuda.max_memory_allocated`` (reset per configuration); CPU: peak
+resident set size during warm-up + timed runs minus the resident size just before them, in a
+fresh subprocess per configuration (Linux: the peak ``VmHWM`` is reset by writing 5 to
+``/proc/self/clear_refs``; where that is not possible it falls back to the growth of
+``resource.getrusage(...).ru_maxrss``, which under-reports when loading the scene peaked higher).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[2]
+DATA = (REPO / ".." / "shared" / "data" / "7scenes-redkitchen-mini").resolve()
+
+
+def box_room(K: int, seed: int = 0):
+    from lipmap.planes import Planes
+    from lipmap.poses import make_T
+
+    rng = np.random.default_rng(seed)
+    L = np.array([5.0, 4.0, 2.7])
+    faces, areas = [], []
+    for ax in range(3):
+        o = [i for i in range(3) if i != ax]
+        for side in (0, 1):
+            faces.append((ax, side))
+            areas.append(L[o[0]] * L[o[1]])
+    f = rng.choice(6, K, p=np.array(areas) / sum(areas))
+    c = rng.random((K, 3)) * L
+    n = np.zeros((K, 3))
+    for i, (ax, side) in enumerate(faces):
+        m = f == i
+        c[m, ax] = side * L[ax]
+        n[m, ax] = 1.0 if side == 0 else -1.0
+    n += rng.normal(0, 0.02, n.shape)
+    p = Planes.from_normals(c - L / 2, n, np.ones(K))
+    p.radii = torch.tensor(rng.uniform(0.03, 0.15, (K, 4)), dtype=torch.float32)
+    eye, target = np.array([-1.5, -1.2, 0.0]), np.array([2.5, 2.0, -0.3])
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, [0, 0, 1.0])
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return p, make_T(R, -R @ eye), (525.0, 525.0, 320.0, 240.0)
+
+
+def kitchen(K: int, grow: float):
+    from lipmap.datasets import load_scene
+    from lipmap.planes.init import PlaneInitConfig, init_planes
+
+    scene = load_scene("7scenes", DATA, "redkitchen")
+    views = scene.mapping[::5]
+    cache = Path(os.environ.get("TMPDIR", "/tmp")) / f"lipmap_bench_kitchen_{K}.pt"
+    if cache.exists():
+        p = torch.load(cache)
+        from lipmap.planes import Planes
+
+        planes = Planes(*p)
+    else:
+        planes = init_planes(views, PlaneInitConfig(n_planes=K, voxel_size=0.02))
+        torch.save(planes.tensors(), cache)
+    planes.radii = planes.radii * grow
+    v = scene.mapping[3]
+    return planes, v.cam_from_world, v.camera.params
+
+
+def _status_kib(key: str) -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1])
+    raise KeyError(key)
+
+
+def _reset_peak_rss() -> bool:
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def run_one(args, res: str, K: int, device: str) -> dict:
+    from lipmap.planes import rasterize_planes
+
+    torch.set_num_threads(args.threads)
+    W, H = (int(x) for x in res.split("x"))
+    if DATA.is_dir() and not args.box:
+        planes, T, intr = kitchen(K, args.grow)
+        source = "redkitchen-init"
+    else:
+        planes, T, intr = box_room(K)
+        source = "box-room"
+    s = W / 640.0
+    intr = tuple(float(x) * s for x in intr)
+    dev = torch.device(device)
+    planes = planes.to(dev)
+    T = torch.as_tensor(T, dtype=torch.float32, device=dev)
+    params = [t.clone().requires_grad_(True) for t in planes.tensors()]
+    target_d = torch.full((H, W), 2.0, device=dev)
+    target_n = torch.zeros(H, W, 3, device=dev)
+    target_n[..., 2] = -1
+
+    def step():
+        out = rasterize_planes(*params, T, intr, W, H, args.lam)
+        loss = (out.depth - target_d).abs().mean() + (out.normal - target_n).abs().sum(-1).mean()
+        loss.backward()
+        return out
+
+    def sync():
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+
+    if dev.type == "cuda":
+        sync()
+        torch.cuda.reset_peak_memory_stats()
+        base = torch.cuda.memory_allocated()
+    hwm_reset = _reset_peak_rss()
+    rss0 = _status_kib("VmRSS") if hwm_reset else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    for _ in range(args.warmup):
+        step()
+    sync()
+    times = []
+    for _ in range(args.repeat):
+        sync()
+        t0 = time.perf_counter()
+        out = step()
+        sync()
+        times.append(time.perf_counter() - t0)
+    if dev.type == "cuda":
+        peak = (torch.cuda.max_memory_allocated() - base) / 2**20
+    else:
+        peak_kib = _status_kib("VmHWM") if hwm_reset else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        peak = (peak_kib - rss0) / 1024
+    return {
+        "resolution": res,
+        "planes": K,
+        "device": device if device == "cpu" else torch.cuda.get_device_name(0),
+        "ms_per_iter": round(1000 * float(np.median(times)), 1),
+        "ms_min": round(1000 * float(np.min(times)), 1),
+        "peak_mb": round(float(peak), 1),
+        "threads": args.threads if device == "cpu" else None,
+        "lambda": args.lam,
+        "pairs": int((out.hits >= 0).sum()),
+        "source": source,
+        "grow": args.grow if source == "redkitchen-init" else None,
+        "torch": torch.__version__,
+    }
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--lam", type=float, default=None, help="one lambda (default: 1500 and 300)")
+    ap.add_argument("--grow", type=float, default=2.5)
+    ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--box", action="store_true", help="use the random box room even if the real data is there")
+    ap.add_argument("--devices", default=None, help="comma list (default: cpu, and cuda when available)")
+    ap.add_argument("--one", nargs=3, metavar=("RES", "K", "DEVICE"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.one:  # child process: one configuration
+        res, K, device = args.one
+        print(json.dumps(run_one(args, res, int(K), device)), flush=True)
+        return
+    devices = args.devices.split(",") if args.devices else ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    resolutions = ["320x240"] if args.quick else ["320x240", "640x480"]
+    counts = [2000] if args.quick else [2000, 10000]
+    lams = [args.lam] if args.lam is not None else [1500.0, 300.0]
+    for device in devices:
+        for lam in lams:
+            for res in resolutions:
+                for K in counts:
+                    cmd = [sys.executable, __file__, "--one", res, str(K), device, "--lam", str(lam),
+                           "--threads", str(args.threads), "--grow", str(args.grow),
+                           "--warmup", str(args.warmup), "--repeat", str(args.repeat)] + (["--box"] if args.box else [])
+                    r = subprocess.run(cmd, capture_output=True, text=True)
+                    line = [l for l in r.stdout.splitlines() if l.startswith("{")]
+                    if r.returncode != 0 or not line:
+                        print(json.dumps({"resolution": res, "planes": K, "device": device, "lambda": lam,
+                                          "error": r.stderr.strip().splitlines()[-1:] }), flush=True)
+                    else:
+                        print(line[-1], flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,199 @@
+"""Plane optimization: convergence on a known wall, prune/split index map, extra_loss hook, bad input,
+and the end-to-end quality figures (synthetic; real RedKitchen when ../shared/data is there)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from lipmap.planes import Planes, rasterize_planes
+from lipmap.planes.optimize import PlaneOptConfig, PlaneIndexMap, ViewTarget, optimize_planes, prune_and_split
+from lipmap.poses import make_T
+from lipmap.scene import Camera
+
+CAM = Camera(64, 48, (56.0, 56.0, 32.0, 24.0))
+
+
+def wall_targets(n=4, z=2.0, valid=True):
+    """Views of the wall z = const (world) from small sideways offsets."""
+    out = []
+    for i in range(n):
+        T = make_T(np.eye(3), np.array([0.1 * (i - n / 2), 0.05 * (i % 2), 0.0]))
+        depth = torch.full((48, 64), z if valid else 0.0)
+        normal = torch.zeros(48, 64, 3)
+        normal[..., 2] = -1 if valid else 0
+        out.append(ViewTarget(None, CAM, torch.tensor(T, dtype=torch.float32), depth, normal, depth > 0, normal.norm(dim=-1) > 0.5))
+    return out
+
+
+def noisy_wall_planes(K=12, seed=0):
+    rng = np.random.default_rng(seed)
+    c = np.stack([rng.uniform(-0.8, 0.8, K), rng.uniform(-0.6, 0.6, K), 2.0 + rng.normal(0, 0.08, K)], 1)
+    n = np.array([0, 0, 1.0]) + rng.normal(0, 0.15, (K, 3))
+    return Planes.from_normals(c, n, np.full(K, 0.12))
+
+
+def small_conf(**kw):
+    return PlaneOptConfig.preset("fast", progress=False, downscale=1, **kw)
+
+
+class TestOptimize:
+    def test_converges_on_a_wall(self):
+        planes, hist = optimize_planes(wall_targets(), noisy_wall_planes(), small_conf(epochs=60))
+        assert hist["depth"][-1] < 0.2 * hist["depth"][0]
+        assert abs(float(planes.normal[:, 2].abs().min())) > 0.99
+        out = rasterize_planes(*planes.tensors(), torch.eye(4), CAM.params, 64, 48, 1500.0)
+        covered = out.alpha > 0.99
+        assert float(covered.float().mean()) > 0.9
+        assert float((out.depth[covered] - 2.0).abs().median()) < 0.01
+
+    def test_seeded(self):
+        a, _ = optimize_planes(wall_targets(), noisy_wall_planes(), small_conf(epochs=2, seed=3))
+        b, _ = optimize_planes(wall_targets(), noisy_wall_planes(), small_conf(epochs=2, seed=3))
+        for x, y in zip(a.tensors(), b.tensors()):
+            assert torch.equal(x, y)
+
+    def test_extra_loss_hook_and_restructure_callback(self):
+        calls, maps = [], []
+
+        def extra(view, planes, iteration, render=None):
+            calls.append((iteration, render is not None, planes.center.requires_grad))
+            return 0.0 * planes.center.sum()
+
+        optimize_planes(wall_targets(2), noisy_wall_planes(), small_conf(epochs=2), extra_loss=extra, on_restructure=maps.append)
+        assert [c[0] for c in calls] == [0, 1, 2, 3]
+        assert all(c[1] and c[2] for c in calls)
+        assert len(maps) == 3 and all(isinstance(m, PlaneIndexMap) for m in maps)
+
+        def extra3(view, planes, iteration):  # the render argument is optional
+            return planes.radii.sum() * 0
+
+        optimize_planes(wall_targets(1), noisy_wall_planes(), small_conf(epochs=1), extra_loss=extra3)
+
+
+class TestPruneSplit:
+    def test_index_map(self):
+        p = Planes.from_normals(np.random.rand(5, 3), np.tile([0, 0, 1.0], (5, 1)), np.full(5, 0.1))
+        p.radii[1] = 1e-3  # pruned: radius <= 1.25e-3
+        seen = torch.tensor([True, True, True, False, True])  # 3 pruned: unseen
+        g = torch.tensor([[0.0, 0.0], [0, 0], [0.5, 0.0], [0, 0], [0.5, 0.5]])
+        new, m = prune_and_split(p, seen=seen, radii_grad=g, split_threshold=0.2)
+        assert m.n_pruned == 2 and m.n_unseen == 1 and m.n_split == 2
+        assert len(new) == 1 + 2 + 4
+        assert sorted(m.parent.tolist()) == [0, 2, 2, 4, 4, 4, 4]
+        o2n = m.old_to_new()
+        assert (o2n[1] == -1).all() and (o2n[3] == -1).all()
+        assert (o2n[4] >= 0).all() and (o2n[2] >= 0).sum() == 2
+        for old in range(5):
+            for j in o2n[old][o2n[old] >= 0].tolist():
+                assert int(m.parent[j]) == old
+        # children tile their parent: total area kept
+        area = lambda q: float((q.radii[:, 0] + q.radii[:, 1]) @ (q.radii[:, 2] + q.radii[:, 3]))
+        assert area(new[m.parent == 4]) == pytest.approx(area(p[4:5]), rel=1e-5)
+
+    def test_max_planes(self):
+        p = Planes.from_normals(np.random.rand(4, 3), np.tile([0, 0, 1.0], (4, 1)), np.full(4, 0.1))
+        g = torch.tensor([[1.0, 1.0], [2.0, 0], [0.5, 0.5], [0.3, 0]])
+        new, m = prune_and_split(p, radii_grad=g, split_threshold=0.2, max_planes=8)
+        assert len(new) <= 8 and m.n_split >= 1
+        assert 1 in m.parent.tolist() and m.parent.tolist().count(1) == 2  # highest gradient went first
+
+
+class TestBadInput:
+    def test_views_without_depth_are_skipped(self):
+        targets = wall_targets(2) + wall_targets(2, valid=False)
+        planes, hist = optimize_planes(targets, noisy_wall_planes(), small_conf(epochs=2))
+        assert sum(hist["skipped"]) == 4  # 2 empty views x 2 epochs
+        for t in planes.tensors():
+            assert torch.isfinite(t).all()
+
+    def test_degenerate_planes_dropped_and_no_nan(self):
+        p = noisy_wall_planes()
+        c, q, r = (t.clone() for t in p.tensors())
+        c[0] = float("nan")
+        r[1] = 0.0
+        r[2, 0] = -0.1
+        q[3] = 0.0
+        maps = []
+        planes, _ = optimize_planes(wall_targets(), Planes(c, q, r), small_conf(epochs=2), on_restructure=maps.append)
+        assert maps[0].n_pruned == 4
+        for t in planes.tensors():
+            assert torch.isfinite(t).all()
+        assert float(planes.radii.min()) > 1.25e-3
+
+    def test_all_planes_culled(self):
+        behind = Planes.from_normals([[0, 0, -2.0]], [[0, 0, 1.0]], [0.2])
+        planes, hist = optimize_planes(wall_targets(2), behind, small_conf(epochs=1, prune_unseen=False))
+        assert hist["skipped"] == [2]
+        torch.testing.assert_close(planes.center, behind.center)
+
+    def test_no_targets(self):
+        from lipmap.errors import InputError
+
+        with pytest.raises(InputError):
+            optimize_planes([], noisy_wall_planes(), small_conf(epochs=1))
+
+    def test_unknown_preset(self):
+        from lipmap.errors import InputError
+
+        with pytest.raises(InputError):
+            PlaneOptConfig.preset("nope")
+
+
+def _render_errors(planes, views):
+    from lipmap.planes import render_view
+
+    errs = []
+    for v in views:
+        with torch.no_grad():
+            r = render_view(planes, v, lam=1500.0, downscale=max(1, v.camera.width // 320))
+        gt = v.load_depth()
+        if gt.shape != tuple(r.depth.shape):
+            from lipmap.planes.init import resize_nearest
+
+            gt = resize_nearest(gt, r.depth.shape[1], r.depth.shape[0])
+        ok = gt > 0
+        errs.append(np.abs(r.depth.numpy() - gt)[ok])
+    return np.concatenate(errs)
+
+
+@pytest.mark.slow
+def test_fit_planes_synthetic_query_depth(synthetic_root, tmp_path):
+    """fast preset on room-s3: rendered depth on the query views (not used for fitting) < 1 cm median."""
+    from lipmap.datasets import load_scene
+    from lipmap.planes import load_planes
+    from lipmap.planes.optimize import fit_planes
+
+    scene = load_scene("synthetic", synthetic_root, "room-s3")
+    path = fit_planes(scene, tmp_path, PlaneOptConfig.preset("fast", progress=False))
+    assert (tmp_path / "planes.ply").exists()
+    err = _render_errors(load_planes(path), scene.query)
+    assert np.median(err) < 0.01, f"median {100 * np.median(err):.2f} cm"
+    # resume: a second call skips the work
+    mtime = path.stat().st_mtime
+    assert fit_planes(scene, tmp_path, PlaneOptConfig.preset("fast", progress=False)) == path
+    assert path.stat().st_mtime == mtime
+
+
+@pytest.mark.slow
+@pytest.mark.shared
+def test_fit_planes_redkitchen_query_depth(redkitchen_root, tmp_path):
+    """Real Kinect data: rendered depth agrees with the registered sensor depth on the query views."""
+    from lipmap.datasets import load_scene
+    from lipmap.planes import load_planes
+    from lipmap.planes.optimize import fit_planes
+
+    scene = load_scene("7scenes", redkitchen_root, "redkitchen")
+    path = fit_planes(scene, tmp_path, PlaneOptConfig.preset("fast", progress=False))
+    err = _render_errors(load_planes(path), scene.query[::5])
+    assert np.median(err) < 0.03, f"median {100 * np.median(err):.2f} cm"
+
+
+def test_paper_preset_runs():
+    """The reference settings (soft lambda start, splitting at 0.2) run and keep finite parameters."""
+    conf = PlaneOptConfig.preset("paper", epochs=2, progress=False)
+    assert conf.lr_center == 1e-3 and conf.split and conf.lambda_min == 0
+    planes, hist = optimize_planes(wall_targets(2), noisy_wall_planes(), conf)
+    assert hist["lambda"][0] < 300
+    for t in planes.tensors():
+        assert torch.isfinite(t).all()
