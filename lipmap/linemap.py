@@ -114,9 +114,14 @@ class LineMap:
     def subset(self, index) -> "LineMap":
         """A LineMap of the selected lines (bool mask or integer indices); planes are kept."""
         idx = np.flatnonzero(index) if np.asarray(index).dtype == bool else np.asarray(index, dtype=int)
-        return LineMap(
-            self.lines[idx], [self.tracks[i] for i in idx], self.supports[idx], self.planes, dict(self.metadata)
-        )
+        planes = self.planes
+        if planes is not None and "edge_line" in planes:
+            # the plane-edge -> line table (used by the raycast line query) follows the renumbering
+            new_id = np.full(len(self), -1, dtype=np.int64)
+            new_id[idx] = np.arange(len(idx))
+            el = np.asarray(planes["edge_line"])
+            planes = {**planes, "edge_line": np.where(el >= 0, new_id[np.clip(el, 0, None)], -1)}
+        return LineMap(self.lines[idx], [self.tracks[i] for i in idx], self.supports[idx], planes, dict(self.metadata))
 
     # ------------------------------------------------------------------------------------------
     # HDF5

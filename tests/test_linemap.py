@@ -225,3 +225,13 @@ def test_cli_export(tmp_path):
     with pytest.raises(InputError):
         args = parser.parse_args(["linemap-export", str(tmp_path / "linemap.h5")])
         args.func(args)
+
+
+def test_subset_renumbers_edge_line():
+    from lipmap.linemap import LineMap
+
+    lines = np.arange(3 * 6, dtype=float).reshape(3, 2, 3)
+    planes = {"corners": np.zeros((2, 4, 3)), "edge_line": np.array([[0, 1, -1, 2], [2, -1, -1, -1]])}
+    sub = LineMap(lines, planes=planes).subset([2, 0])
+    np.testing.assert_array_equal(sub.planes["edge_line"], [[1, -1, -1, 0], [0, -1, -1, -1]])
+    np.testing.assert_array_equal(sub.lines[0], lines[2])
