@@ -140,35 +140,24 @@ class TestBadInput:
             PlaneOptConfig.preset("nope")
 
 
-def _render_errors(planes, views):
-    from lipmap.planes import render_view
-
-    errs = []
-    for v in views:
-        with torch.no_grad():
-            r = render_view(planes, v, lam=1500.0, downscale=max(1, v.camera.width // 320))
-        gt = v.load_depth()
-        if gt.shape != tuple(r.depth.shape):
-            from lipmap.planes.init import resize_nearest
-
-            gt = resize_nearest(gt, r.depth.shape[1], r.depth.shape[0])
-        ok = gt > 0
-        errs.append(np.abs(r.depth.numpy() - gt)[ok])
-    return np.concatenate(errs)
-
-
 @pytest.mark.slow
 def test_fit_planes_synthetic_query_depth(synthetic_root, tmp_path):
     """fast preset on room-s3: rendered depth on the query views (not used for fitting) < 1 cm median."""
     from lipmap.datasets import load_scene
     from lipmap.planes import load_planes
+    from lipmap.planes.check import check_png, rendered_depth_errors
     from lipmap.planes.optimize import fit_planes
 
     scene = load_scene("synthetic", synthetic_root, "room-s3")
     path = fit_planes(scene, tmp_path, PlaneOptConfig.preset("fast", progress=False))
     assert (tmp_path / "planes.ply").exists()
-    err = _render_errors(load_planes(path), scene.query)
-    assert np.median(err) < 0.01, f"median {100 * np.median(err):.2f} cm"
+    planes = load_planes(path)
+    err = rendered_depth_errors(planes, scene.query)
+    assert err["views"] == len(scene.query)
+    assert err["median"] < 0.01, err
+    assert err["coverage"] > 0.95, err
+    png = check_png(planes, scene.mapping[:2], tmp_path / "check.png")
+    assert png.stat().st_size > 1000
     # resume: a second call skips the work
     mtime = path.stat().st_mtime
     assert fit_planes(scene, tmp_path, PlaneOptConfig.preset("fast", progress=False)) == path
@@ -181,12 +170,13 @@ def test_fit_planes_redkitchen_query_depth(redkitchen_root, tmp_path):
     """Real Kinect data: rendered depth agrees with the registered sensor depth on the query views."""
     from lipmap.datasets import load_scene
     from lipmap.planes import load_planes
+    from lipmap.planes.check import rendered_depth_errors
     from lipmap.planes.optimize import fit_planes
 
     scene = load_scene("7scenes", redkitchen_root, "redkitchen")
     path = fit_planes(scene, tmp_path, PlaneOptConfig.preset("fast", progress=False))
-    err = _render_errors(load_planes(path), scene.query[::5])
-    assert np.median(err) < 0.03, f"median {100 * np.median(err):.2f} cm"
+    err = rendered_depth_errors(load_planes(path), scene.query[::5])
+    assert err["median"] < 0.03, err
 
 
 def test_paper_preset_runs():

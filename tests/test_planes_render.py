@@ -83,6 +83,17 @@ class TestAgreementWithTwin:
         _, _, out, (d2, n2, a2) = _both(planes, 300.0, tile_size=tile_size)
         torch.testing.assert_close(out.depth, d2, atol=1e-10, rtol=0)
 
+    def test_chunked_selection(self, monkeypatch):
+        """A tiny evaluation budget (many chunks per tile group) gives the same hits."""
+        import lipmap.planes.render as R
+
+        planes = random_planes(60)
+        a = rasterize_planes(*planes.tensors(), torch.eye(4, dtype=torch.float64), INTR, W, H, 36.8)
+        monkeypatch.setattr(R, "_EVAL_BUDGET_CPU", 500)
+        b = rasterize_planes(*planes.tensors(), torch.eye(4, dtype=torch.float64), INTR, W, H, 36.8)
+        assert torch.equal(a.hits, b.hits)
+        torch.testing.assert_close(a.depth, b.depth, atol=0, rtol=0)
+
     def test_posed_camera(self):
         """Same scene seen through a non-trivial cam_from_world (planes moved by its inverse)."""
         from lipmap.poses import T_from_qt, invert_T

@@ -81,14 +81,17 @@ class PlaneOptConfig:
 
 
 def _fast() -> PlaneOptConfig:
-    # Tests and the demo (CPU): ~320 px wide images, 8 epochs. Measured on the synthetic room-s3
-    # (30 views, 320x240; query-view median depth error, see the planes report):
-    # - lr 1e-2 instead of 1e-3: Adam moves a parameter by ~lr per step, and 240 steps at 1e-3
-    #   cannot grow 2 cm init radii to wall size (2.5 cm -> 0.9 cm median error);
+    # Tests and the demo (CPU): ~320 px wide images, 8 epochs, 2 cm TSDF voxels. Measured on the
+    # synthetic room-s3 (30 mapping views at 320x240; median |rendered - true depth| on the 20
+    # query views) while tuning, all else equal:
+    # - lr 1e-2 (reference 1e-3): Adam moves a parameter by ~lr per step, and 240 steps at
+    #   1e-3..3e-3 cannot grow the 2-3 cm init radii to wall size (lr 3e-3 -> 1e-2 at 160 px:
+    #   8.6 cm -> 2.5 cm);
     # - lambda clipped to >= 300: the reference's soft start (lambda 37..300, splats reaching
-    #   3-27 cm beyond each rectangle) costs ~20 s per epoch on CPU and was worse here (1.6 vs 2.5 cm);
-    # - no splitting: within 8 epochs every split threshold we tried (0.2, 0.6, 1.5) made the
-    #   result worse (4.5, 2.2, 1.1 cm vs 0.9 cm without).
+    #   3-27 cm beyond each rectangle) costs ~20 s per epoch on CPU and was worse here
+    #   (2.5 cm -> 1.6 cm at 160 px); 320 px instead of 160 px: 1.6 -> 0.9 cm;
+    # - no splitting: within 8 epochs each split threshold tried (0.2, 0.6, 1.5 on our
+    #   mean-over-pixels losses) made it worse (4.5, 2.2, 1.1 cm vs 0.9 cm without).
     return PlaneOptConfig(
         name="fast",
         epochs=8,

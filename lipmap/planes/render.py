@@ -40,6 +40,8 @@ from .primitives import (
 )
 
 TILE_SIZE = 8
+_EVAL_BUDGET_CPU = 1 << 22  # (pixel, candidate) evaluations per batched step of the selection
+_EVAL_BUDGET_CUDA = 1 << 26
 
 
 def lambda_schedule(iteration: int, max_iters: int, lam_min: float = 0.0, lam_max: float = 1500.0) -> float:
@@ -336,37 +338,42 @@ def select_hits(
     lx, ly = lx.reshape(-1), ly.reshape(-1)
     row_of_tile = torch.empty(ntx * nty, dtype=torch.long, device=dev)
     inf = float("inf")
+    # evaluations per chunk (pixels x candidates): bounds the memory when splats are wide
+    budget = _EVAL_BUDGET_CUDA if dev.type == "cuda" else _EVAL_BUDGET_CPU
     for L in torch.unique(size[size > 0]).tolist():
-        tiles_b = (size == L).nonzero().squeeze(1)
-        nb = len(tiles_b)
-        row_of_tile[tiles_b] = torch.arange(nb, device=dev)
+        tiles_all = (size == L).nonzero().squeeze(1)
+        row_of_tile[tiles_all] = torch.arange(len(tiles_all), device=dev)
         in_b = size[tile] == L
-        cand = torch.full((nb, L), K, dtype=torch.long, device=dev)
-        cand[row_of_tile[tile[in_b]], rank[in_b]] = plane[in_b]
-        col = (tiles_b % ntx * ts)[:, None] + lx  # (nb, ts*ts)
-        row = (torch.div(tiles_b, ntx, rounding_mode="floor") * ts)[:, None] + ly
-        inside = (col < width) & (row < height)
-        A = torch.stack([(col + 0.5 - cx) / fx, (row + 0.5 - cy) / fy, torch.ones(col.shape, dtype=dt, device=dev)], -1)
-        # (nb, 3, 3L): for each candidate the columns n, X, Y; one bmm gives every n.d, X.d, Y.d
-        B = dirs.index_select(0, cand.reshape(-1)).reshape(nb, L, 3, 3).permute(0, 2, 3, 1).reshape(nb, 3, 3 * L)
-        dots = torch.bmm(A, B)  # (nb, ts*ts, 3L)
-        sc = scal.index_select(0, cand.reshape(-1)).reshape(nb, 1, L, 5)
-        t = sc[..., 0] / dots[..., :L]
-        ex = (t * dots[..., L : 2 * L] - sc[..., 1]).abs_().sub_(sc[..., 3])  # distance outside, along X
-        ey = (t * dots[..., 2 * L :] - sc[..., 2]).abs_().sub_(sc[..., 4])
-        ok = (t > NEAR) & (ex < margin) & (ey < margin) & inside[..., None]
-        k = min(max_hits, L)
-        kv, ki = torch.topk(torch.where(ok, t, inf), k, dim=-1, largest=False, sorted=True)
-        # transmittance along the k nearest; entries behind T < TRANSMITTANCE_EPS / 2 are dropped
-        # (the exact cut at TRANSMITTANCE_EPS is made by composite_hits with its own arithmetic)
-        e = torch.maximum(ex.gather(2, ki), ey.gather(2, ki))
-        w = torch.where(e <= 0, 1.0, 2 * torch.sigmoid(-lam * e))
-        w = torch.where(torch.isfinite(kv), w, 0.0)
-        trans = torch.cumprod(torch.cat([torch.ones_like(w[..., :1]), 1 - w[..., :-1]], -1), -1)
-        sel = torch.gather(cand[:, None, :].expand(-1, ts * ts, -1), 2, ki)
-        sel = torch.where(torch.isfinite(kv) & (trans >= 0.5 * TRANSMITTANCE_EPS), sel, -1)
-        pix = (row * width + col)[inside]
-        hits[pix, :k] = sel[inside]
+        cand_all = torch.full((len(tiles_all), L), K, dtype=torch.long, device=dev)
+        cand_all[row_of_tile[tile[in_b]], rank[in_b]] = plane[in_b]
+        chunk = max(1, budget // (ts * ts * L))
+        for c0 in range(0, len(tiles_all), chunk):
+            tiles_b, cand = tiles_all[c0 : c0 + chunk], cand_all[c0 : c0 + chunk]
+            nb = len(tiles_b)
+            col = (tiles_b % ntx * ts)[:, None] + lx  # (nb, ts*ts)
+            row = (torch.div(tiles_b, ntx, rounding_mode="floor") * ts)[:, None] + ly
+            inside = (col < width) & (row < height)
+            A = torch.stack([(col + 0.5 - cx) / fx, (row + 0.5 - cy) / fy, torch.ones(col.shape, dtype=dt, device=dev)], -1)
+            # (nb, 3, 3L): for each candidate the columns n, X, Y; one bmm gives every n.d, X.d, Y.d
+            B = dirs.index_select(0, cand.reshape(-1)).reshape(nb, L, 3, 3).permute(0, 2, 3, 1).reshape(nb, 3, 3 * L)
+            dots = torch.bmm(A, B)  # (nb, ts*ts, 3L)
+            sc = scal.index_select(0, cand.reshape(-1)).reshape(nb, 1, L, 5)
+            t = sc[..., 0] / dots[..., :L]
+            ex = (t * dots[..., L : 2 * L] - sc[..., 1]).abs_().sub_(sc[..., 3])  # distance outside, along X
+            ey = (t * dots[..., 2 * L :] - sc[..., 2]).abs_().sub_(sc[..., 4])
+            ok = (t > NEAR) & (ex < margin) & (ey < margin) & inside[..., None]
+            k = min(max_hits, L)
+            kv, ki = torch.topk(torch.where(ok, t, inf), k, dim=-1, largest=False, sorted=True)
+            # transmittance along the k nearest; entries behind T < TRANSMITTANCE_EPS / 2 are dropped
+            # (the exact cut at TRANSMITTANCE_EPS is made by composite_hits with its own arithmetic)
+            e = torch.maximum(ex.gather(2, ki), ey.gather(2, ki))
+            w = torch.where(e <= 0, 1.0, 2 * torch.sigmoid(-lam * e))
+            w = torch.where(torch.isfinite(kv), w, 0.0)
+            trans = torch.cumprod(torch.cat([torch.ones_like(w[..., :1]), 1 - w[..., :-1]], -1), -1)
+            sel = torch.gather(cand[:, None, :].expand(-1, ts * ts, -1), 2, ki)
+            sel = torch.where(torch.isfinite(kv) & (trans >= 0.5 * TRANSMITTANCE_EPS), sel, -1)
+            pix = (row * width + col)[inside]
+            hits[pix, :k] = sel[inside]
     return hits
 
 
