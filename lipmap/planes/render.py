@@ -239,15 +239,20 @@ def _tile_pairs(boxes, vis, width, height, tile_size):
     return tile, pid[rep[order]], ntx, nty
 
 
-def _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, n, ax, ay, scal, zmin):
-    """Keep-mask over (tile, plane) pairs: drop planes lying behind a plane that covers the whole tile.
+def _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, n, ax, ay, scal, zmin, margin, max_hits):
+    """Keep-mask over (tile, plane) pairs: drop candidates no pixel of the tile can composite.
 
-    A plane whose rectangle (weight exactly 1) contains the rays of a tile's 4 corner pixels
-    contains all the tile's pixel rays (the rectangle seen from the camera is convex), so every
-    pixel's transmittance is 0 behind it: a candidate whose depth over the tile is larger than
-    the occluder's largest corner depth contributes nothing and is removed. The candidate's depth
-    over the tile is bounded below by its corner depths (1 / depth is affine in the pixel) and by
-    its nearest vertex (``zmin``). Exact for the rendered output; it only saves work.
+    Both tests look at the rays of the tile's 4 corner pixels: a rectangle seen from the camera is
+    convex, so one containing those 4 rays contains every pixel ray of the tile, and 1 / depth is
+    affine in the pixel, so depths over the tile lie between the corner depths. A candidate's
+    depth over the tile is bounded below by its corner depths (when all are in front) and by its
+    nearest vertex (``zmin``); it is dropped when that bound exceeds
+    - the far corner depth of a plane whose rectangle proper (weight 1) covers the tile: the
+      transmittance behind it is 0 in every pixel; or
+    - the ``max_hits``-th smallest far corner depth of the planes whose dilated rectangle (weight
+      > WEIGHT_EPS) covers the tile: every pixel has max_hits nearer hits already. This one does
+      the work when lambda is small and splats are wide.
+    Exact for the rendered output (ties are kept); it only saves work.
     """
     fx, fy, cx, cy = intrinsics
     ts = tile_size
@@ -264,13 +269,25 @@ def _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, n, ax
 
     t = sk[:, None, 0] / dot(nk)  # (N, 4)
     front = (t > NEAR).all(1)
-    full = front & ((t * dot(xk) - sk[:, None, 1]).abs() <= sk[:, None, 3]).all(1)
-    full &= ((t * dot(yk) - sk[:, None, 2]).abs() <= sk[:, None, 4]).all(1)
-    inf = torch.full_like(t[:, 0], float("inf"))
-    z_occ = torch.full((int(tile.max()) + 1,), float("inf"), dtype=t.dtype, device=t.device)
-    z_occ = z_occ.scatter_reduce(0, tile, torch.where(full, t.amax(1), inf), reduce="amin")
+    e = torch.maximum((t * dot(xk) - sk[:, None, 1]).abs() - sk[:, None, 3], (t * dot(yk) - sk[:, None, 2]).abs() - sk[:, None, 4])
+    e = e.amax(1)  # how far the worst corner is outside the rectangle
+    full = front & (e <= 0)
+    covered = front & (e < margin)
+    inf = float("inf")
+    z_far = torch.where(front, t.amax(1), inf)
+    n_tiles = int(tile.max()) + 1
+    empty = torch.full((n_tiles,), inf, dtype=t.dtype, device=t.device)
+    cut = empty.scatter_reduce(0, tile, torch.where(full, z_far, inf), reduce="amin")
+    # max_hits-th smallest far depth among the covering planes, by repeated minimum (ties
+    # removed together only make it larger, i.e. more conservative)
+    zc = torch.where(covered, z_far, inf)
+    kth = empty
+    for _ in range(max_hits):
+        kth = empty.scatter_reduce(0, tile, zc, reduce="amin")
+        zc = torch.where(zc <= kth[tile], inf, zc)
+    cut = torch.minimum(cut, kth)
     z_near = torch.where(front, torch.maximum(t.amin(1), zmin[plane]), zmin[plane])
-    return z_near <= z_occ[tile]
+    return z_near <= cut[tile]
 
 
 @torch.no_grad()
@@ -323,7 +340,7 @@ def select_hits(
     dirs = torch.cat([torch.stack([n, ax, ay], 2), torch.eye(3, device=dev, dtype=dt)[[2, 0, 1]].T[None]])  # (K+1, 3, 3)
     scal = torch.cat([torch.stack([nc, xc, yc, hx, hy], 1), torch.tensor([[-1.0, 0, 0, 0, 0]], device=dev, dtype=dt)])
 
-    keep = _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, n, ax, ay, scal, zmin)
+    keep = _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, n, ax, ay, scal, zmin, margin, max_hits)
     tile, plane = tile[keep], plane[keep]
     counts = torch.bincount(tile, minlength=ntx * nty)
     start = torch.cumsum(counts, 0) - counts
