@@ -20,6 +20,15 @@ def _check_size(arr: np.ndarray, expected_size, path, what: str):
         raise InputError(f"{what} has size {arr.shape[1]}x{arr.shape[0]}, expected {w}x{h}", path)
 
 
+def _truncated_jpeg(path: Path) -> bool:
+    with open(path, "rb") as f:
+        if f.read(2) != b"\xff\xd8":
+            return False
+        f.seek(0, os.SEEK_END)
+        f.seek(max(0, f.tell() - 64))  # some writers pad after the marker
+        return b"\xff\xd9" not in f.read()
+
+
 def read_color(path, gray: bool = False, expected_size=None) -> np.ndarray:
     """RGB uint8 (H, W, 3), or grayscale (H, W) with ``gray``."""
     path = Path(path)
@@ -28,6 +37,8 @@ def read_color(path, gray: bool = False, expected_size=None) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
     if img is None or img.size == 0:
         raise InputError("image cannot be decoded (corrupt or not an image)", path)
+    if _truncated_jpeg(path):  # OpenCV decodes these without error, filling the lost part with grey
+        raise InputError("image is truncated (JPEG ends before its end-of-image marker)", path)
     if not gray:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     _check_size(img, expected_size, path, "image")

@@ -217,7 +217,9 @@ def write_features(
         as_half: store float arrays as float16, like hloc's default.
     """
     keypoints = np.asarray(keypoints, dtype=np.float64).reshape(-1, 2)
-    descriptors = np.asarray(descriptors).reshape(len(keypoints), -1)
+    descriptors = np.asarray(descriptors)
+    if descriptors.ndim != 2:  # reshape(0, -1) cannot infer D for an image without features
+        descriptors = descriptors.reshape(len(keypoints), -1)
     # float16 descriptors stay float16 (lossless for SIFT, which COLMAP quantises to uint8 / 512)
     desc_dtype = np.float16 if descriptors.dtype == np.float16 else np.float32
     data = {"keypoints": (keypoints - 0.5).astype(np.float32), "descriptors": descriptors.T.astype(desc_dtype)}
@@ -440,7 +442,8 @@ class ModelIndex:
         return out
 
 
-def point_matches_from_hloc(query: str, sfm_dir, features_h5, matches_h5, pairs, model: Optional[ModelIndex] = None):
+def point_matches_from_hloc(query: str, sfm_dir, features_h5, matches_h5, pairs, model: Optional[ModelIndex] = None,
+                            pairs_name=None):
     """2D-3D point matches of one query from hloc's outputs, the way hloc's ``localize_sfm`` builds them.
 
     Args:
@@ -450,6 +453,7 @@ def point_matches_from_hloc(query: str, sfm_dir, features_h5, matches_h5, pairs,
         pairs: a pairs file path, or a list of (query, db) pairs / db names; those of ``query``
             are used, in order.
         model: a :class:`ModelIndex` reused across queries (read from ``sfm_dir`` if None).
+        pairs_name: the file a pairs list was read from, named in error messages.
 
     Returns:
         :class:`localization.points.PointMatches` - p2d (N, 2) COLMAP convention, p3d (N, 3),
@@ -461,6 +465,7 @@ def point_matches_from_hloc(query: str, sfm_dir, features_h5, matches_h5, pairs,
         model = ModelIndex(read_sfm(sfm_dir), sfm_dir)
     pairs_path = Path(pairs) if isinstance(pairs, (str, Path)) else None
     pair_list = read_pairs(pairs_path) if pairs_path is not None else [tuple(p) for p in pairs]
+    pairs_path = pairs_path or pairs_name
     retrieved = pairs_by_query(pair_list).get(query, [])
     if not Path(features_h5).exists():
         raise InputError("features file is missing", features_h5)

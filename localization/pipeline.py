@@ -94,19 +94,22 @@ class HlocPoints:
         feats = [p for p in h5s if "match" not in p.name]
         matches = [p for p in h5s if "match" in p.name]
         pairs = sorted(p for p in folder.glob("*.txt") if "pairs" in p.name or "query" in p.name)
-        for what, found in (("an SfM model (images.bin)", sfm), ("a features .h5", feats), ("a matches .h5", matches),
-                            ("a query pairs .txt", pairs)):
+        for what, found in (("SfM model (folder with images.bin)", sfm), ("features file (*.h5 without 'match' in its name)", feats),
+                            ("matches file (*.h5 with 'match' in its name)", matches),
+                            ("query pairs file (*.txt with 'pairs' or 'query' in its name)", pairs)):
             if len(found) != 1:
                 raise InputError(f"expected exactly one {what} in the hloc folder, found {len(found)}: "
                                  f"{[p.name for p in found]}", folder)
         self.sfm, self.features, self.matches, self.pairs = sfm[0], feats[0], matches[0], read_pairs(pairs[0])
+        self.pairs_file = pairs[0]
         self.model = ModelIndex(read_sfm(self.sfm), self.sfm)
         self.timings = {}
 
     def matches_for(self, name: str):
         from .hloc_io import point_matches_from_hloc
 
-        return point_matches_from_hloc(name, self.sfm, self.features, self.matches, self.pairs, model=self.model)
+        return point_matches_from_hloc(name, self.sfm, self.features, self.matches, self.pairs, model=self.model,
+                                       pairs_name=self.pairs_file)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -206,6 +209,13 @@ def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, line
     fault_point("mapped")
     linemap = LineMap.load(linemap_path)
     lq = LineQuery.from_linemap(linemap)
+    if not len(linemap):
+        logger.warning("%s: the line map has no lines; point+line poses will be the point-only poses", linemap_path)
+    if conf.line_query.method == "raycast" and len(linemap) and (lq.caster is None or lq.edge_line is None):
+        # otherwise every query fails alone with the same ValueError
+        raise InputError(f"the raycast line query needs a line map with planes; this one was made by "
+                         f"{linemap.metadata.get('method', '?')!r} and has none", linemap_path,
+                         "use --line-query projection or --method lipmap")
     points = HlocPoints(Path(hloc_dir) / scene.name) if hloc_dir else BuiltinPoints(scene, out_dir / "points", conf, overwrite)
     qlines_h5 = detect_lines(scene.query, out_dir / "lines2d_query.h5", mconf.lines, overwrite=overwrite)
 

@@ -163,7 +163,7 @@ def sift_features(gray: np.ndarray, conf: SiftConf, extractor=None) -> dict:
     extractor = extractor or _sift_extractor(conf)
     kps, desc = extractor.extract_from_uint8_array(np.ascontiguousarray(gray))
     kp = pycolmap.keypoints_to_matrix(kps).astype(np.float64).reshape(-1, 4)
-    d = np.asarray(desc.data, dtype=np.float32).reshape(len(kp), -1)
+    d = np.asarray(desc.data, dtype=np.float32).reshape(len(kp), 128)  # -1 fails when nothing was found
     d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
     return {"keypoints": kp[:, :2], "descriptors": d, "scales": kp[:, 2], "oris": kp[:, 3]}
 

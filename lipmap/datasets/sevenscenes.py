@@ -82,6 +82,8 @@ def read_split(path: Path) -> list[int]:
         m = re.fullmatch(r"sequence(\d+)", line)
         if not m:
             raise InputError(f"line {i + 1}: expected 'sequenceN', got {line!r}", path)
+        if int(m.group(1)) in seqs:
+            raise InputError(f"line {i + 1}: {line} is listed twice (its frames would have duplicate names)", path)
         seqs.append(int(m.group(1)))
     if not seqs:
         raise InputError("split file lists no sequences (empty split)", path)
@@ -167,9 +169,14 @@ def _read_sequence(scene_dir: Path, seq: int, step: int, camera: Camera, dcam, c
     seq_dir = scene_dir / f"seq-{seq:02d}"
     if not seq_dir.is_dir():
         raise InputError(f"sequence folder seq-{seq:02d} listed in the split is missing", seq_dir)
-    idxs = sorted(m.group(1) for p in seq_dir.iterdir() if (m := _FRAME_RE.match(p.name)))
+    files = [p.name for p in seq_dir.iterdir()]
+    idxs = sorted(m.group(1) for f in files if (m := _FRAME_RE.match(f)))
     if not idxs:
         raise InputError("sequence folder holds no frame-NNNNNN.pose.txt files", seq_dir)
+    have = set(idxs)
+    orphans = sorted(f for f in files if ".color." in f and f.split(".")[0][len("frame-"):] not in have)
+    if orphans:  # frames are found by their pose files: say so rather than drop images silently
+        logger.warning("%s: %d colour image(s) have no pose file and are not used, e.g. %s", seq_dir, len(orphans), orphans[0])
     views = []
     for idx in idxs[::step]:
         name = f"seq-{seq:02d}/frame-{idx}.color.png"  # hloc's name, whatever the extension on disk
@@ -178,7 +185,13 @@ def _read_sequence(scene_dir: Path, seq: int, step: int, camera: Camera, dcam, c
         normal = seq_dir / f"frame-{idx}.normal.png"
         meta = {}
         try:
-            color = _color_path(seq_dir, idx)
+            try:
+                color = _color_path(seq_dir, idx)
+            except InputError:
+                if not is_query:
+                    raise
+                # a missing query image is one failed query (reported by validate.check_scene), not a stop
+                color = seq_dir / f"frame-{idx}.color.png"
             try:
                 if conf.pose_source == "posetxt":
                     depth_from_world = invert_T(read_pose_txt(seq_dir / f"frame-{idx}.pose.txt"))
@@ -246,6 +259,10 @@ def load_scene(root, scene: str, conf: SevenScenesConfig | None = None, dataset:
         pgt = read_pgt(pgt_path)
     train = read_split(scene_dir / "TrainSplit.txt")
     test = read_split(scene_dir / "TestSplit.txt")
+    if set(train) & set(test):
+        both = min(set(train) & set(test))
+        raise InputError(f"sequence{both} is in both TrainSplit.txt and TestSplit.txt (mapping and query frames "
+                         "would have the same names)", scene_dir / "TestSplit.txt")
     bad: list = []
     mapping = [
         v for s in train

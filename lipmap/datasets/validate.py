@@ -16,7 +16,8 @@ def check_view(view, need_depth: bool) -> str | None:
         view.load_color()
         if need_depth:
             if view.depth_path is None:
-                return f"{view.color_path}: frame has no depth map (frame-NNNNNN.depth.png)"
+                stem = view.color_path.name.split(".color.")[0]
+                return f"{view.color_path.with_name(stem + '.depth.png')}: depth map is missing (mapping needs depth)"
             d = view.load_depth()
             if not (d > 0).any():
                 return f"{view.depth_path}: depth map has no valid pixel (all 0 or 65535)"
