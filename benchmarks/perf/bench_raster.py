@@ -21,6 +21,26 @@ resident set size during warm-up + timed runs minus the resident size just befor
 fresh subprocess per configuration (Linux: the peak ``VmHWM`` is reset by writing 5 to
 ``/proc/self/clear_refs``; where that is not possible it falls back to the growth of
 ``resource.getrusage(...).ru_maxrss``, which under-reports when loading the scene peaked higher).
+
+On a shared machine, a busy core makes torch's 2-thread OpenMP pool spin: one measurement went
+from 40 ms to 3.3 s. ``OMP_WAIT_POLICY=PASSIVE`` kept it at 61 ms under the same load.
+
+Results (commit 4e66509, 2026-11-26, 2-core CPU VM, load average ~1.2, torch 2.13.0+cpu, 2
+threads, ``python benchmarks/perf/bench_raster.py --repeat 7``; RedKitchen init planes x 2.5;
+run-to-run spread on this VM is about +-25 %):
+
+    resolution  planes  lambda  ms/iter  peak MB  (selected pixel-plane pairs)
+    320x240     2000    1500      45.8     58      82540
+    320x240     10000   1500      76.6     68      96975
+    640x480     2000    1500     160.5    196     330554
+    640x480     10000   1500     196.9    213     388324
+    320x240     2000     300      58.3     74     123214
+    320x240     10000    300     122.1    123     215344
+    640x480     2000     300     182.3    233     493505
+    640x480     10000    300     342.2    407     861635
+    320x240     2000    36.8     136.8    154     370987   (--quick --lam 36.8)
+
+No CUDA device was available for these runs.
 """
 from __future__ import annotations
 
