@@ -287,7 +287,9 @@ def _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, n, ax
         zc = torch.where(zc <= kth[tile], inf, zc)
     cut = torch.minimum(cut, kth)
     z_near = torch.where(front, torch.maximum(t.amin(1), zmin[plane]), zmin[plane])
-    return z_near <= cut[tile]
+    # keep near-ties: corner depths and the per-pixel depths round differently, and a tie between
+    # two coplanar planes can decide which one is composited
+    return z_near <= cut[tile] * (1 + 1e-4) + 1e-6
 
 
 @torch.no_grad()
