@@ -64,7 +64,8 @@ class RenderOutput:
         depth: :math:`(H, W)` z-depth sum_j T_j w_j t_j (not normalised by alpha; 0 where empty).
         normal: :math:`(H, W, 3)` camera-frame normals sum_j T_j w_j n_j (facing the camera).
         alpha: :math:`(H, W)` accumulated weight sum_j T_j w_j in [0, 1].
-        hits: :math:`(H, W, M)` int64 plane indices, nearest first, -1 padded (no gradient).
+        hits: :math:`(H, W, M)` int64 indices of the composited planes, nearest first, -1 padded
+            (no gradient); ``hits[..., 0]`` is the first plane each pixel's ray meets.
     """
 
     depth: torch.Tensor
@@ -412,8 +413,8 @@ def composite_hits(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Differentiable depth (H,W), normal (H,W,3), alpha (H,W) from the selected (pixel, plane) pairs.
 
-    Also returns the (P, M) hits with -1 where a pair contributes nothing (weight <= WEIGHT_EPS
-    after round-off, or behind a transmittance below TRANSMITTANCE_EPS).
+    Also returns the (P, M) hits, nearest first, without the pairs that contribute nothing
+    (weight <= WEIGHT_EPS after round-off, or behind a transmittance below TRANSMITTANCE_EPS), -1 padded.
     """
     intrinsics = tuple(float(v) for v in intrinsics)
     dev, dt = center.device, center.dtype
@@ -441,6 +442,8 @@ def composite_hits(
         if bool(unused.any()):
             hits = hits.clone()
             hits[fp.pix[unused], fp.slot[unused]] = -1
+            if bool(((hits[:, 1:] >= 0) & (hits[:, :-1] < 0)).any()):
+                hits = _compact(hits)  # keep "hits[..., 0] = the first composited plane"
     return depth.reshape(height, width), normal.reshape(height, width, 3), alpha.reshape(height, width), hits
 
 
