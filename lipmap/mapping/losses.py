@@ -59,9 +59,13 @@ def group_loss(edges3d: torch.Tensor, line_idx: torch.Tensor) -> torch.Tensor:
 
 
 def line_loss(corners, plane_idx, edge_idx, det, line_idx, cam_from_world, camera, use_group: bool = False,
-              group_weight: float = 1.0):
-    """Mean over assignments of D_euc / 2 + max endpoint-to-line distance (the reference code's form),
-    plus the optional group loss (metres, weighted by ``group_weight``).
+              group_weight: float = 1.0, endpoint_weight: float = 0.5):
+    """Mean over assignments of ``endpoint_weight`` * D_euc + max endpoint-to-line distance (0.5: the
+    reference code's form), plus the optional group loss (metres, weighted by ``group_weight``).
+
+    Detected segments are usually shorter than the plane edge they see (fragments, occlusion, the
+    image border), so D_euc pulls every assigned edge's ends towards the fragment's ends and shrinks
+    the plane; ``endpoint_weight=0`` keeps only the orthogonal term, which every fragment agrees on.
 
     Args:
         corners: :math:`(K, 4, 3)` plane corners with grad; plane_idx/edge_idx/line_idx: :math:`(P,)`;
@@ -76,7 +80,7 @@ def line_loss(corners, plane_idx, edge_idx, det, line_idx, cam_from_world, camer
     proj, _ = geo.project_segments(edges, T, camera)
     proj = torch.where(valid[:, None, None], proj, det.reshape(-1, 2, 2))
     ort_max = geo.perpendicular_distance(proj, det.reshape(-1, 2, 2), reduce="max")
-    per = 0.5 * euc + ort_max
+    per = endpoint_weight * euc + ort_max
     loss = per[valid].mean() if bool(valid.any()) else corners.sum() * 0
     if use_group:
         loss = loss + group_weight * group_loss(edges, line_idx)

@@ -28,6 +28,7 @@ class MappingConfig:
     line_weight: float = 0.1  # paper alpha_L
     pixels_per_line: int = 1
     group_loss: bool = False
+    endpoint_weight: float = 0.5  # D_euc weight in the line loss (0.5: reference code)
     line_start_frac: float = 0.0  # start the line term after this fraction of the iterations
     extract: ExtractConfig = field(default_factory=ExtractConfig)
     lift: str = "lift-merge-loose"  # lipmap.lift preset for method "lift"
@@ -88,7 +89,8 @@ def fit_planes_with_lines(scene, lines_by_view: dict, out_dir: Path, conf: Mappi
     t_init = time.time() - t0
     targets = prepare_targets(frames, pconf, device=dev)
     sup = LineSupervision(lines_by_view, weight=conf.line_weight, pixels_per_line=conf.pixels_per_line,
-                          use_group=conf.group_loss, seed=conf.seed)
+                          use_group=conf.group_loss, seed=conf.seed,
+                          endpoint_weight=conf.endpoint_weight)
     planes, history = optimize_planes(targets, planes, pconf, extra_loss=sup)
     history["init_seconds"] = t_init
     history["total_seconds"] = time.time() - t0

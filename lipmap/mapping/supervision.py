@@ -25,13 +25,15 @@ class LineSupervision:
     """
 
     def __init__(self, lines_by_view: dict, weight: float = 0.1, pixels_per_line: int = 1, use_group: bool = False,
-                 group_weight: float = 10.0, seed: int = 0):
+                 group_weight: float = 10.0, seed: int = 0,
+                 endpoint_weight: float = 0.5):
         self.lines = {k: np.asarray(v, dtype=np.float64).reshape(-1, 4) for k, v in lines_by_view.items()}
         self.weight = weight
-        self.pixels_per_line = max(1, pixels_per_line if not use_group else max(2, pixels_per_line))
+        self.pixels_per_line = max(0, pixels_per_line if not use_group else max(2, pixels_per_line))
         self.use_group = use_group
         self.group_weight = group_weight
         self.seed = seed
+        self.endpoint_weight = endpoint_weight
         self._regions = {}
         self.last = {}
 
@@ -58,16 +60,28 @@ class LineSupervision:
         pix, li = self._region(view.name, camera)
         if len(pix) == 0:
             return zero
-        rng = np.random.default_rng([self.seed, iteration])
-        # sample k pixels per line: random keys, then the first k of each line after sorting
-        order = np.lexsort((rng.random(len(li)), li))
-        li_sorted = li[order]
-        rank = np.arange(len(li_sorted)) - np.searchsorted(li_sorted, li_sorted)
-        take = order[rank < self.pixels_per_line]
-        pix, li = pix[take], li[take]
-        o, d = pixel_rays_world(pix, view.cam_from_world, camera)
-        k, _ = first_hit_torch(corners, torch.as_tensor(o, dtype=corners.dtype, device=corners.device),
-                               torch.as_tensor(d, dtype=corners.dtype, device=corners.device))
+        if self.pixels_per_line == 0 and render is not None and tuple(render.hits.shape[:2]) == (camera.height, camera.width):
+            # every region pixel, through the renderer's own first hits; each (line, plane) pair once
+            k_all = render.hits[torch.as_tensor(pix[:, 1]), torch.as_tensor(pix[:, 0]), 0].cpu().numpy()
+            pairs = np.unique(np.stack([li, k_all], 1), axis=0)
+            pairs = pairs[pairs[:, 1] >= 0]
+            li = pairs[:, 0]
+            k = torch.as_tensor(pairs[:, 1])
+        else:
+            if self.pixels_per_line == 0:
+                take_k = 4
+            else:
+                take_k = self.pixels_per_line
+            rng = np.random.default_rng([self.seed, iteration])
+            # sample k pixels per line: random keys, then the first k of each line after sorting
+            order = np.lexsort((rng.random(len(li)), li))
+            li_sorted = li[order]
+            rank = np.arange(len(li_sorted)) - np.searchsorted(li_sorted, li_sorted)
+            take = order[rank < take_k]
+            pix, li = pix[take], li[take]
+            o, d = pixel_rays_world(pix, view.cam_from_world, camera)
+            k, _ = first_hit_torch(corners, torch.as_tensor(o, dtype=corners.dtype, device=corners.device),
+                                   torch.as_tensor(d, dtype=corners.dtype, device=corners.device))
         hit = (k >= 0).cpu().numpy()
         if not hit.any():
             return zero
@@ -80,7 +94,8 @@ class LineSupervision:
         if not ok.any():
             return zero
         loss = line_loss(corners, plane[ok], edge[ok], lines_s[li[ok]], li[ok], view.cam_from_world, camera,
-                         use_group=self.use_group, group_weight=self.group_weight)
+                         use_group=self.use_group, group_weight=self.group_weight,
+                         endpoint_weight=self.endpoint_weight)
         self.last = {"n_assign": int(ok.sum()), "loss": float(loss.detach())}
         # distances are in training-resolution pixels; express them in full-resolution pixels so the
         # balance with the plane loss does not change with the training scale
