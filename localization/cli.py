@@ -190,7 +190,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-point-matches", type=int, default=None, help="seeded random subset of N 2D-3D point matches per query")
     p.add_argument("--preset", default="fast", choices=["fast", "paper"], help="mapping preset")
-    p.add_argument("--method", default="lipmap", choices=["lipmap", "lift"], help="line map method")
+    p.add_argument("--method", default="lift", choices=["lipmap", "lift"],
+                   help="line map method (default lift: the fast-preset lipmap maps hold too few lines to help yet)")
     p.add_argument("--line-query", default=None, choices=["projection", "raycast"])
     p.add_argument("--points", default="sift-n4096", help="built-in point preset (sift-n4096, sift-n2048, sift-n1024-fast)")
     p.add_argument("--synth-preset", default="small", choices=["small", "default"])

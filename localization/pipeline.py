@@ -46,7 +46,7 @@ class LocalizationConfig:
     line_query: LineQueryConfig = field(default_factory=LineQueryConfig)
     line_iters: int = 2  # line query -> refine, repeated with the refined pose
     mapping: str = "fast"  # lipmap.mapping.pipeline preset
-    map_method: str = "lipmap"
+    map_method: str = "lift"  # measured: fast-preset lipmap maps are too sparse to help localization (see README)
 
     def digest(self) -> str:
         d = asdict(self)

@@ -112,3 +112,23 @@ def test_no_valid_depth_is_an_input_error():
     cam = Camera(8, 6, (5.0, 5.0, 4.0, 3.0))
     with pytest.raises(InputError):
         fuse_tsdf([DepthFrame(None, cam, np.eye(4), np.zeros((6, 8), np.float32))], PlaneInitConfig())
+
+
+def test_manhattan_frame_recovers_rotated_room_axes():
+    from lipmap.planes.init import manhattan_frame
+    from lipmap.planes.primitives import rotation_from_normals
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    R = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix()
+    # floor-like normals (most area), two wall directions, a little clutter and noise
+    base = np.repeat(np.eye(3), [500, 300, 200], axis=0) * rng.choice([-1, 1], size=(1000, 1))
+    n = np.concatenate([base + rng.normal(0, 0.02, base.shape), rng.normal(size=(100, 3))]) @ R.T
+    F = manhattan_frame(n)
+    assert np.allclose(F @ F.T, np.eye(3), atol=1e-9)
+    # each frame axis is one of the room's axes (up to sign), within 1.5 degrees
+    cos = np.abs(F @ R)  # (frame axis, room axis)
+    assert (cos.max(1) > np.cos(np.radians(1.5))).all() and len(set(cos.argmax(1))) == 3
+    # a wall plane's in-plane X axis then lies along a room axis, not at an arbitrary angle
+    X = rotation_from_normals(R[:, :1].T, F)[0][:, 0]
+    assert np.abs(X @ R).max() > np.cos(np.radians(1.5))

@@ -33,6 +33,7 @@ class PlaneInitConfig:
     max_voxels: int = 40_000_000  # coarsen the voxels if the scene box would need more
     radius_scale: float = 0.3  # plane radius = this x mean centroid-to-vertex distance
     min_component_faces: int = 20  # drop isolated mesh fragments smaller than this before decimating
+    manhattan: bool = False  # in-plane axes from the scene's dominant directions (else the world axes)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -244,8 +245,45 @@ def _cluster_vertices(V: np.ndarray, F: np.ndarray, cell: float):
     return Vn, inv[F][ok][np.sort(Fn)]
 
 
-def planes_from_mesh(vertices: np.ndarray, faces: np.ndarray, radius_scale: float = 0.3, device=None) -> Planes:
-    """One plane per triangle: centroid, mean vertex normal, radii = radius_scale x mean centroid-vertex distance."""
+def manhattan_frame(normals: np.ndarray, weights: np.ndarray | None = None, tol_deg: float = 10.0) -> np.ndarray:
+    """The scene's dominant orthogonal directions (3, 3) (rows) from surface normals (N, 3).
+
+    The first axis is the normal direction (sign-free) with the largest weight within ``tol_deg``;
+    the second the same among the normals within ``tol_deg`` of perpendicular to it, made exactly
+    orthogonal; the third their cross product. Falls back to the world axes without enough support.
+    """
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    w = np.ones(len(n)) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+    ok = np.isfinite(n).all(1) & (np.linalg.norm(n, axis=1) > 1e-9) & np.isfinite(w)
+    n, w = n[ok] / np.linalg.norm(n[ok], axis=1, keepdims=True), w[ok]
+    if len(n) < 10:
+        return np.eye(3)
+    rng = np.random.default_rng(0)
+    cand = n[rng.choice(len(n), size=min(len(n), 500), replace=False)]
+    cos_tol = np.cos(np.radians(tol_deg))
+
+    def best(c, mask):
+        score = ((np.abs(c @ n[mask].T) >= cos_tol) * w[mask]).sum(1)
+        i = int(np.argmax(score))
+        members = n[mask][np.abs(n[mask] @ c[i]) >= cos_tol]
+        members = members * np.sign(members @ c[i])[:, None]
+        return members.mean(0) / np.linalg.norm(members.mean(0)), score[i]
+
+    a1, _ = best(cand, np.ones(len(n), bool))
+    perp = np.abs(n @ a1) <= np.sin(np.radians(tol_deg))
+    c2 = cand[np.abs(cand @ a1) <= np.sin(np.radians(tol_deg))]
+    if perp.sum() < 10 or len(c2) == 0:
+        return np.eye(3)
+    a2, _ = best(c2, perp)
+    a2 = a2 - (a2 @ a1) * a1
+    a2 /= np.linalg.norm(a2)
+    return np.stack([a1, a2, np.cross(a1, a2)])
+
+
+def planes_from_mesh(vertices: np.ndarray, faces: np.ndarray, radius_scale: float = 0.3, device=None,
+                     manhattan: bool = False) -> Planes:
+    """One plane per triangle: centroid, mean vertex normal, radii = radius_scale x mean centroid-vertex
+    distance; in-plane axes from the mesh's Manhattan frame when ``manhattan``, else the world axes."""
     import trimesh
 
     mesh = trimesh.Trimesh(vertices, faces, process=False)
@@ -258,7 +296,8 @@ def planes_from_mesh(vertices: np.ndarray, faces: np.ndarray, radius_scale: floa
     radius = radius_scale * np.linalg.norm(tri - centroid[:, None], axis=2).mean(1)
     good = np.isfinite(normal).all(1) & (np.linalg.norm(normal, axis=1) > 1e-6) & np.isfinite(centroid).all(1)
     radius = np.clip(radius, R_MIN * 2, R_MAX)
-    return Planes.from_normals(centroid[good], normal[good], radius[good], device=device)
+    frame = manhattan_frame(fn, mesh.area_faces) if manhattan and len(fn) else None
+    return Planes.from_normals(centroid[good], normal[good], radius[good], device=device, frame=frame)
 
 
 def init_planes(views, conf: Optional[PlaneInitConfig] = None, device=None, frames=None) -> Planes:
@@ -272,6 +311,6 @@ def init_planes(views, conf: Optional[PlaneInitConfig] = None, device=None, fram
     V, F = fuse_tsdf(frames, conf, device=device)
     logger.info("plane init: fused mesh %d vertices, %d faces", len(V), len(F))
     V, F = decimate(V, F, conf.n_planes, conf.min_component_faces)
-    planes = planes_from_mesh(V, F, conf.radius_scale, device=device)
+    planes = planes_from_mesh(V, F, conf.radius_scale, device=device, manhattan=conf.manhattan)
     logger.info("plane init: %d planes (median radius %.3f m)", len(planes), float(planes.radii[:, 0].median()) if len(planes) else 0.0)
     return planes

@@ -43,6 +43,7 @@ class PlaneOptConfig:
     lr_center: float = 1e-3
     lr_quat: float = 1e-3
     lr_radii: float = 1e-3
+    lr_final_frac: float = 1.0  # learning rates decay exponentially to this fraction by the last iteration
     depth_weight: float = 2.0
     normal_weight: float = 5.0
     plane_weight: float = 10.0  # total = plane_weight * decay * plane_loss + extra
@@ -389,6 +390,12 @@ def optimize_planes(
         for vi in rng.permutation(n_views):
             tgt = targets[vi]
             lam = lambda_schedule(it, max_iters, conf.lambda_min, conf.lambda_max)
+            if conf.lr_final_frac != 1.0:
+                # Adam moves each parameter by ~lr per step whatever its gradient, so edge positions
+                # jitter at the lr scale; annealing lets them settle to the pixel level at the end
+                f = conf.lr_final_frac ** (it / max(max_iters - 1, 1))
+                for g, base in zip(opt.param_groups, (conf.lr_center, conf.lr_quat, conf.lr_radii)):
+                    g["lr"] = base * f
             out = rasterize_planes(
                 params[0], params[1], params[2], tgt.cam_from_world, tgt.camera.params,
                 tgt.camera.width, tgt.camera.height, lam, conf.max_hits, conf.tile_size,

@@ -47,15 +47,18 @@ def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
     ).reshape(*q.shape[:-1], 3, 3)
 
 
-def rotation_from_normals(normals: np.ndarray) -> np.ndarray:
+def rotation_from_normals(normals: np.ndarray, frame: np.ndarray | None = None) -> np.ndarray:
     """Rotations (K, 3, 3) whose third column is the unit normal, with a deterministic in-plane X axis.
 
-    X is the world axis least aligned with the normal, made orthogonal to it (Gram-Schmidt); ties go
-    to the lowest axis index, so the same normal always gives the same frame. Y = normal x X.
+    X is the axis of ``frame`` (rows; default the world axes) least aligned with the normal, made
+    orthogonal to it (Gram-Schmidt); ties go to the lowest axis index, so the same normal always gives
+    the same frame. Y = normal x X. With the scene's Manhattan frame the rectangles' edges start
+    parallel to the walls' and furniture's edges, which is where the detected lines are.
     """
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    e = np.eye(3)[np.argmin(np.abs(n), axis=1)]
+    F = np.eye(3) if frame is None else np.asarray(frame, dtype=np.float64).reshape(3, 3)
+    e = F[np.argmin(np.abs(n @ F.T), axis=1)]
     x = e - (e * n).sum(1, keepdims=True) * n
     x /= np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
     y = np.cross(n, x)
@@ -104,13 +107,14 @@ class Planes:
 
     # ---- construction ---------------------------------------------------------------------
     @classmethod
-    def from_normals(cls, centers, normals, radii, dtype=torch.float32, device=None) -> "Planes":
-        """Planes at ``centers`` (K, 3) facing ``normals`` (K, 3); ``radii`` (K,) or (K, 4)."""
+    def from_normals(cls, centers, normals, radii, dtype=torch.float32, device=None, frame=None) -> "Planes":
+        """Planes at ``centers`` (K, 3) facing ``normals`` (K, 3); ``radii`` (K,) or (K, 4); in-plane
+        axes from ``frame`` (see :func:`rotation_from_normals`)."""
         centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
         radii = np.asarray(radii, dtype=np.float64)
         if radii.ndim == 1:
             radii = np.repeat(radii[:, None], 4, axis=1)
-        quat = rotmat_to_quat(rotation_from_normals(normals))
+        quat = rotmat_to_quat(rotation_from_normals(normals, frame))
         kw = dict(dtype=dtype, device=device)
         return cls(torch.as_tensor(centers, **kw), torch.as_tensor(quat, **kw), torch.as_tensor(radii, **kw))
 
