@@ -19,7 +19,9 @@ class LineSupervision:
     Args:
         lines_by_view: {view name: (N, 4) detected segments at the view's FULL resolution}.
         weight: the paper's alpha_L (0.1).
-        pixels_per_line: region pixels sampled per line per iteration (>= 2 for the group loss).
+        pixels_per_line: region pixels sampled per line per iteration (>= 2 for the group loss); 0 = every
+            region pixel, each (line, first-hit plane) pair once, read from the render's first hits.
+        endpoint_weight: weight of D_euc in the line loss (see :func:`lipmap.mapping.losses.line_loss`).
         use_group: add the paper's group loss (off in the reference code).
         seed: sampling seed (combined with the iteration, so a resumed run samples the same pixels).
     """
@@ -68,10 +70,7 @@ class LineSupervision:
             li = pairs[:, 0]
             k = torch.as_tensor(pairs[:, 1])
         else:
-            if self.pixels_per_line == 0:
-                take_k = 4
-            else:
-                take_k = self.pixels_per_line
+            take_k = self.pixels_per_line or 4  # "all pixels" without a render of this size: sample 4
             rng = np.random.default_rng([self.seed, iteration])
             # sample k pixels per line: random keys, then the first k of each line after sorting
             order = np.lexsort((rng.random(len(li)), li))

@@ -267,14 +267,15 @@ def manhattan_frame(normals: np.ndarray, weights: np.ndarray | None = None, tol_
         i = int(np.argmax(score))
         members = n[mask][np.abs(n[mask] @ c[i]) >= cos_tol]
         members = members * np.sign(members @ c[i])[:, None]
-        return members.mean(0) / np.linalg.norm(members.mean(0)), score[i]
+        m = members.mean(0)
+        return m / np.linalg.norm(m)
 
-    a1, _ = best(cand, np.ones(len(n), bool))
+    a1 = best(cand, np.ones(len(n), bool))
     perp = np.abs(n @ a1) <= np.sin(np.radians(tol_deg))
     c2 = cand[np.abs(cand @ a1) <= np.sin(np.radians(tol_deg))]
     if perp.sum() < 10 or len(c2) == 0:
         return np.eye(3)
-    a2, _ = best(c2, perp)
+    a2 = best(c2, perp)
     a2 = a2 - (a2 @ a1) * a1
     a2 /= np.linalg.norm(a2)
     return np.stack([a1, a2, np.cross(a1, a2)])
