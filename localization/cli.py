@@ -189,9 +189,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hloc", type=Path, default=None, help="hloc outputs, one folder per scene (sfm model, features, matches, pairs)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-point-matches", type=int, default=None, help="seeded random subset of N 2D-3D point matches per query")
-    p.add_argument("--preset", default="fast", choices=["fast", "paper"], help="mapping preset")
+    p.add_argument("--preset", default="fast", choices=["fast", "quick", "paper"], help="mapping preset")
     p.add_argument("--method", default="lift", choices=["lipmap", "lift"],
-                   help="line map method (default lift: the fast-preset lipmap maps hold too few lines to help yet)")
+                   help="line map method (default lift: the fast-preset lipmap map of RedKitchen holds too few lines to help)")
     p.add_argument("--line-query", default=None, choices=["projection", "raycast"])
     p.add_argument("--points", default="sift-n4096", help="built-in point preset (sift-n4096, sift-n2048, sift-n1024-fast)")
     p.add_argument("--synth-preset", default="small", choices=["small", "default"])
@@ -207,7 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--root", type=Path, required=True)
     p.add_argument("--scene", required=True)
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--preset", default="fast", choices=["fast", "paper"])
+    p.add_argument("--preset", default="fast", choices=["fast", "quick", "paper"],
+                   help="mapping preset: fast (CPU, ~5 min for 50 views), quick (tests, small scenes), paper")
     p.add_argument("--method", default="lipmap", choices=["lipmap", "lift"])
     p.add_argument("--lines", type=Path, default=None, help="2D lines made elsewhere (folder of WireframeGraph JSON / npz, or HDF5)")
     p.add_argument("--pose-source", default="posetxt", choices=["posetxt", "dslam", "sfm"])

@@ -6,18 +6,19 @@ joint loss (plane loss + line term) must bring its four edges onto the detected 
 extraction finds them within the paper's thresholds (1 px, 0.01 rad); the plane loss alone must not.
 """
 import functools
+import types
 
 import numpy as np
 import pytest
 import torch
 
-from lipmap.mapping.assign import PlaneRaycaster, pixel_rays_world
 from lipmap.mapping.extract import ExtractConfig, extract_observations, merge_edges
+from lipmap.mapping.pipeline import get_conf, lipmap_linemap
 from lipmap.mapping.supervision import LineSupervision
 from lipmap.planes.init import DepthFrame
 from lipmap.planes.optimize import PlaneOptConfig, optimize_planes, prepare_targets
 from lipmap.planes.primitives import Planes, rotmat_to_quat
-from lipmap.testing import SMALL_CAMERA, rect
+from lipmap.testing import SMALL_CAMERA, raycast_depth, rect
 from scipy.spatial.transform import Rotation
 
 from lipmap.poses import make_T
@@ -33,17 +34,6 @@ def panel_scene():
         R = Rotation.from_euler("y", yaw, degrees=True).as_matrix()
         views.append(View(f"v{i}", SMALL_CAMERA, make_T(R, [tx, 0.03 * i, 0]), color_path=None))
     return np.stack([panel, *tiles]), views
-
-
-def _depth(corners, view):
-    """True z-depth of ``view`` by ray casting the rectangles."""
-    cam = view.camera
-    jj, ii = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
-    pix = np.stack([jj.ravel(), ii.ravel()], 1)
-    o, d = pixel_rays_world(pix, view.cam_from_world, cam)
-    _, t = PlaneRaycaster(corners).first_hit(o, d)
-    z = t * (d @ view.cam_from_world[:3, :3].T)[:, 2]
-    return np.where(np.isfinite(z), z, 0).reshape(cam.height, cam.width).astype(np.float32)
 
 
 def _planes(corners, grow=0.0, turn_deg=0.0):
@@ -65,7 +55,7 @@ def _planes(corners, grow=0.0, turn_deg=0.0):
 def _optimize(line_weight, pixels_per_line=1, endpoint_weight=0.0):
     corners, views = panel_scene()
     lines = {v.name: detected(corners, v, shrink=0.05) for v in views}  # fragments 5 % short at each end
-    frames = [DepthFrame(v, v.camera, v.cam_from_world, _depth(corners, v)) for v in views]
+    frames = [DepthFrame(v, v.camera, v.cam_from_world, raycast_depth(corners, v)) for v in views]
     conf = PlaneOptConfig.preset("fast", epochs=40, lr_center=3e-3, lr_quat=3e-3, lr_radii=3e-3,
                                  prune_unseen=False, progress=False)
     init = _planes(corners, grow=0.03, turn_deg=1.5)
@@ -101,3 +91,19 @@ def test_endpoint_term_shrinks_planes_to_short_detections():
     *_, err_ort = _optimize(0.1, endpoint_weight=0.0)
     *_, err_euc = _optimize(0.1, endpoint_weight=0.5)
     assert err_euc.max() > 2 * err_ort.max()
+
+
+def test_depth_check_rejects_lines_off_the_sensor_depth():
+    """``max_depth_residual`` keeps the lines of the panel's four edges when the sensor depth agrees with them and
+    drops them (and their plane-edge table entries) when the sensor sees the panel 10 cm further away."""
+    corners, views = panel_scene()
+    lines = {v.name: detected(corners, v, shrink=0.05) for v in views}
+    depth = {v.name: raycast_depth(corners, v) for v in views}
+    scene = types.SimpleNamespace(mapping=views)
+    conf = get_conf({"extract": ExtractConfig(max_depth_residual=0.03)})
+    lm = lipmap_linemap(scene, _planes(corners), lines, conf, depth)
+    assert (lm.planes["edge_line"][0] >= 0).all() and lm.metadata.get("n_depth_rejected") == 0
+    far = {k: np.where(d > 0, d + 0.1, 0) for k, d in depth.items()}
+    lm = lipmap_linemap(scene, _planes(corners), lines, conf, far)
+    assert len(lm) == 0 and (lm.planes["edge_line"] == -1).all()
+    assert lm.metadata["n_depth_rejected"] >= 4

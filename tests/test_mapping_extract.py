@@ -5,13 +5,13 @@ import torch
 
 from lipmap import geometry as geo
 from lipmap.mapping.assign import PlaneRaycaster, assign_lines, best_edges, corner_edges, line_regions
-from lipmap.mapping.extract import ExtractConfig, build_tracks, extract_observations, merge_edges
+from lipmap.mapping.extract import ExtractConfig, build_tracks, depth_residuals, extract_observations, merge_edges
 from lipmap.mapping.losses import assigned_edges, group_loss, line_loss
 from lipmap.poses import make_T
 from lipmap.scene import Camera, View
 from scipy.spatial.transform import Rotation
 
-from lipmap.testing import SMALL_CAMERA as CAM, rect, wall_scene
+from lipmap.testing import SMALL_CAMERA as CAM, raycast_depth, rect, wall_scene
 
 
 def scene():
@@ -133,3 +133,23 @@ def test_torch_raycaster_agrees_with_embree():
     agree = k_t.numpy() == k_e
     assert agree.mean() > 0.99  # ties at shared borders may differ
     np.testing.assert_allclose(t_t.numpy()[agree & (k_e >= 0)], t_e[agree & (k_e >= 0)], atol=1e-6)
+
+
+def test_depth_residuals_measure_distance_to_sensor_depth():
+    corners, views = scene()
+    depth = {v.name: raycast_depth(corners, v) for v in views}
+    edges = corner_edges(corners[:1])[0]  # the panel's edges: occluding boundaries in front of the back wall
+    centre = corners[0].mean(0)
+    inner = centre + 0.5 * (edges - centre)  # lines drawn on the panel, well inside it
+    off = inner.copy()
+    off[:, :, 2] -= 0.1  # the same, 10 cm in front of the panel: floating in free space
+    lines = np.concatenate([edges, inner, off])
+    tracks = np.array([(li, vi, 0) for li in range(len(lines)) for vi in range(len(views))])
+    res = depth_residuals(lines, tracks, views, depth)
+    # on an occluding edge one side of the 3x3 window is the panel itself
+    assert np.all(res[:8] < 5e-3)
+    assert np.allclose(res[8:], 0.1, atol=5e-3)
+    # no depth for a view -> that view gives no evidence; no view with depth -> NaN
+    assert np.isnan(depth_residuals(lines, tracks, views, {})).all()
+    only0 = depth_residuals(lines, tracks, views, {views[0].name: depth[views[0].name]})
+    assert np.allclose(only0, res, atol=5e-3)

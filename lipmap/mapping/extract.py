@@ -35,6 +35,10 @@ class ExtractConfig:
     occlusion_tol: float = 0.05  # relative depth tolerance of the visibility test
     min_views: int = 1  # drop merged lines seen in fewer mapping views
     min_length: float = 0.02  # m
+    # Drop a line whose median |line depth - sensor depth| over its tracked views exceeds this (m);
+    # 0 disables. Not in the paper: planes that float a few cm off the surface (weakly observed, or
+    # bent by the line term) yield edges that pass the 2D tests but sit off the geometry.
+    max_depth_residual: float = 0.0
 
 
 def extract_observations(corners, views, lines_by_view: dict, conf: ExtractConfig, progress: bool = True) -> dict:
@@ -183,6 +187,53 @@ def visible_mask(points_world: np.ndarray, view, depth: np.ndarray | None, tol: 
         depth = cv2.resize(depth, (W, H), interpolation=cv2.INTER_NEAREST)
     d = depth[row, col]
     return inside & ((d <= 0) | (z <= d * (1 + tol) + 0.02))
+
+
+def depth_residuals(lines: np.ndarray, tracks: np.ndarray, views, depth_by_view: dict, n: int = 16) -> np.ndarray:
+    """Median disagreement between each line and the sensor depth of the views that track it.
+
+    Each line is sampled at ``n`` points; in every tracked view with a depth map, a sample's residual is
+    the smallest |z - depth| over the 3x3 pixels around its projection (an occluding edge sits on a
+    depth step, so one side of it must agree).
+
+    Args:
+        lines: :math:`(L, 2, 3)`; tracks: :math:`(T, 3)` (line, view index, 2D line index).
+        depth_by_view: {view name: (H, W) metric depth, 0 = invalid}.
+
+    Returns:
+        :math:`(L,)` median residual in metres; NaN where no tracked view has valid depth there.
+    """
+    out = np.full(len(lines), np.nan)
+    if len(lines) == 0 or len(tracks) == 0:
+        return out
+    samples = geo.sample_segments(lines, n)
+    pairs = np.unique(tracks[:, :2], axis=0)
+    per_line = [[] for _ in range(len(lines))]
+    for vi in np.unique(pairs[:, 1]):
+        v = views[vi]
+        depth = depth_by_view.get(v.name) if depth_by_view else None
+        if depth is None:
+            continue
+        ids = pairs[pairs[:, 1] == vi, 0]
+        H, W = depth.shape
+        scale = W / v.camera.width
+        uv, z = geo.project_points(samples[ids].reshape(-1, 3), v.cam_from_world, v.camera)
+        col = np.round(uv[:, 0] * scale - 0.5).astype(int)
+        row = np.round(uv[:, 1] * scale - 0.5).astype(int)
+        inside = (z > 0) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
+        best = np.full(len(z), np.inf)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                d = depth[np.clip(row + dy, 0, H - 1), np.clip(col + dx, 0, W - 1)]
+                best = np.where((d > 0) & inside, np.minimum(best, np.abs(d - z)), best)
+        best = best.reshape(len(ids), n)
+        for li, r in zip(ids, best):
+            per_line[li].append(r[np.isfinite(r)])
+    for li, rs in enumerate(per_line):
+        r = np.concatenate(rs) if rs else np.zeros(0)
+        if len(r):
+            out[li] = np.median(r)
+    return out
 
 
 def build_tracks(lines: np.ndarray, views, lines_by_view: dict, conf: ExtractConfig, depth_by_view=None,
