@@ -172,6 +172,17 @@ def _finish(lines, obs_line, obs, edge_line, conf, allow_edge_conflicts=False):
     return lines[keep], new_id[obs_line], edge_line
 
 
+def _depth_pixels(uv: np.ndarray, z: np.ndarray, camera, depth_shape) -> tuple:
+    """(row, col, inside) of projections ``uv`` (camera pixels) in a depth map of ``depth_shape``,
+    which may have another resolution than the camera (indices scale, the map is not resampled)."""
+    H, W = depth_shape
+    sx, sy = W / camera.width, H / camera.height
+    col = np.floor(uv[:, 0] * sx).astype(int)
+    row = np.floor(uv[:, 1] * sy).astype(int)
+    inside = (z > 0) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
+    return np.clip(row, 0, H - 1), np.clip(col, 0, W - 1), inside
+
+
 def visible_mask(points_world: np.ndarray, view, depth: np.ndarray | None, tol: float) -> np.ndarray:
     """Which points (N, 3) are in view and not occluded according to the view's depth map (0: unknown)."""
     uv, z = geo.project_points(points_world, view.cam_from_world, view.camera)
@@ -179,12 +190,7 @@ def visible_mask(points_world: np.ndarray, view, depth: np.ndarray | None, tol: 
     inside = (z > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
     if depth is None:
         return inside
-    col = np.clip(uv[:, 0].astype(int), 0, W - 1)
-    row = np.clip(uv[:, 1].astype(int), 0, H - 1)
-    if depth.shape != (H, W):
-        import cv2
-
-        depth = cv2.resize(depth, (W, H), interpolation=cv2.INTER_NEAREST)
+    row, col, _ = _depth_pixels(uv, z, view.camera, depth.shape)
     d = depth[row, col]
     return inside & ((d <= 0) | (z <= d * (1 + tol) + 0.02))
 
@@ -216,11 +222,8 @@ def depth_residuals(lines: np.ndarray, tracks: np.ndarray, views, depth_by_view:
             continue
         ids = pairs[pairs[:, 1] == vi, 0]
         H, W = depth.shape
-        scale = W / v.camera.width
         uv, z = geo.project_points(samples[ids].reshape(-1, 3), v.cam_from_world, v.camera)
-        col = np.round(uv[:, 0] * scale - 0.5).astype(int)
-        row = np.round(uv[:, 1] * scale - 0.5).astype(int)
-        inside = (z > 0) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
+        row, col, inside = _depth_pixels(uv, z, v.camera, depth.shape)
         best = np.full(len(z), np.inf)
         for dy in (-1, 0, 1):
             for dx in (-1, 0, 1):
