@@ -29,7 +29,7 @@ import json
 import warnings
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Optional, Sequence, Union
+from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
 from tqdm import tqdm
@@ -235,36 +235,49 @@ def lift_view_lines(lines2d: np.ndarray, depth: np.ndarray, camera, conf: Union[
 # ----------------------------------------------------------------------------------------------
 # map
 # ----------------------------------------------------------------------------------------------
-def lift_linemap(scene_views: Sequence, lines_h5, conf: Union[None, str, dict, LiftConf] = None) -> LineMap:
+def lift_linemap(scene_views: Sequence, lines, conf: Union[None, str, dict, LiftConf] = None,
+                 depth_of: Optional[Callable] = None, skip: Optional[dict] = None) -> LineMap:
     """Lift the detected lines of every view with its depth into one world :class:`LineMap`.
 
     Args:
         scene_views: posed :class:`~lipmap.scene.View` objects with depth.
-        lines_h5: ``lines2d.h5`` holding lines for those views.
+        lines: ``lines2d.h5`` holding lines for those views, or {view name: (N, 4) segments}.
         conf: preset ("lift", "lift-merge", "lift-merge-loose"), dict of overrides or :class:`LiftConf`.
+        depth_of: ``f(view) -> (H, W) depth`` (default: the view's sensor depth, ``view.load_depth()``);
+            the mapping uses it to lift lines onto its optimized planes.
+        skip: {view name: indices of 2D lines not to lift} (lines another method already explains).
 
     Returns:
         the line map; each track is the observation(s) that produced the line.
     """
     conf = get_conf(conf)
-    lines_h5 = Path(lines_h5)
-    stored = set(list_names(lines_h5))
-    missing = [v.name for v in scene_views if v.name not in stored]
+    if isinstance(lines, dict):
+        lines_of = {k: np.asarray(v, dtype=np.float64).reshape(-1, 4) for k, v in lines.items()}
+        source = "the given lines"
+    else:
+        lines_h5 = Path(lines)
+        lines_of = {n: None for n in list_names(lines_h5)}
+        source = lines_h5
+    missing = [v.name for v in scene_views if v.name not in lines_of]
     if missing:
-        raise InputError(f"no 2D lines for {len(missing)} views, e.g. {missing[0]!r}", lines_h5,
+        raise InputError(f"no 2D lines for {len(missing)} views, e.g. {missing[0]!r}", source,
                          hint="run lines2d.detect_lines on these views first")
     seg_w, obs, n_det = [], [], 0
     per_view = []  # (view, 2D lines, index into seg_w for each 2D line or -1)
     for v in tqdm(scene_views, desc="lift", disable=len(scene_views) < 2):
-        L = load_lines(lines_h5, v.name).astype(np.float64)
+        L = lines_of[v.name] if lines_of[v.name] is not None else load_lines(lines_h5, v.name).astype(np.float64)
         n_det += len(L)
-        segs_cam, ok = lift_view_lines(L, v.load_depth(), v.camera, conf)
+        todo = np.ones(len(L), dtype=bool)
+        if skip and v.name in skip:
+            todo[np.asarray(list(skip[v.name]), dtype=np.int64)] = False
+        segs_cam, ok = lift_view_lines(L[todo], v.load_depth() if depth_of is None else depth_of(v), v.camera, conf)
         world_from_cam = invert_T(v.cam_from_world)
         idx = np.full(len(L), -1)
-        for i in np.flatnonzero(ok):
-            idx[i] = len(seg_w)
-            seg_w.append(transform_points(world_from_cam, segs_cam[i]))
-            obs.append([(v.name, int(i), L[i])])
+        for j, i in enumerate(np.flatnonzero(todo)):
+            if ok[j]:
+                idx[i] = len(seg_w)
+                seg_w.append(transform_points(world_from_cam, segs_cam[j]))
+                obs.append([(v.name, int(i), L[i])])
         per_view.append((v, L, idx))
     lines = np.array(seg_w).reshape(-1, 2, 3)
     logger.info("Lifted %d of %d 2D lines (%.0f%%).", len(lines), n_det, 100.0 * len(lines) / max(n_det, 1))

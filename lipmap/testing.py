@@ -19,15 +19,9 @@ def rect(center, half_x: float, half_y: float, axes=np.eye(3)) -> np.ndarray:
 
 def raycast_depth(corners: np.ndarray, view) -> np.ndarray:
     """True z-depth (H, W) of ``view`` by ray casting rectangles (K, 4, 3); 0 where no rectangle is hit."""
-    from .mapping.assign import PlaneRaycaster, pixel_rays_world
+    from .mapping.assign import PlaneRaycaster, plane_depth
 
-    cam = view.camera
-    jj, ii = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
-    pix = np.stack([jj.ravel(), ii.ravel()], 1)
-    o, d = pixel_rays_world(pix, view.cam_from_world, cam)
-    k, t = PlaneRaycaster(corners).first_hit(o, d)
-    z = t * (d @ view.cam_from_world[:3, :3].T)[:, 2]
-    return np.where((k >= 0) & np.isfinite(z), z, 0).reshape(cam.height, cam.width).astype(np.float32)
+    return plane_depth(PlaneRaycaster(corners), view)[0]
 
 
 def wall_scene(camera: Camera = SMALL_CAMERA):

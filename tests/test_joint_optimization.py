@@ -100,10 +100,40 @@ def test_depth_check_rejects_lines_off_the_sensor_depth():
     lines = {v.name: detected(corners, v, shrink=0.05) for v in views}
     depth = {v.name: raycast_depth(corners, v) for v in views}
     scene = types.SimpleNamespace(mapping=views)
-    conf = get_conf({"extract": ExtractConfig(max_depth_residual=0.03)})
+    conf = get_conf({"extract": ExtractConfig(max_depth_residual=0.03), "on_plane_lines": False})
     lm = lipmap_linemap(scene, _planes(corners), lines, conf, depth)
     assert (lm.planes["edge_line"][0] >= 0).all() and lm.metadata.get("n_depth_rejected") == 0
     far = {k: np.where(d > 0, d + 0.1, 0) for k, d in depth.items()}
     lm = lipmap_linemap(scene, _planes(corners), lines, conf, far)
     assert len(lm) == 0 and (lm.planes["edge_line"] == -1).all()
     assert lm.metadata["n_depth_rejected"] >= 4
+
+
+def test_on_plane_lines_lift_texture_lines_onto_their_plane():
+    """A line painted on the back wall is no plane edge: ``on_plane_lines`` lifts it onto the wall (ray
+    cast plane depth), merged into one line tracked in every view; the panel's edges stay edge lines."""
+    from lipmap.geometry import point_line_distance, project_segments
+    from lipmap.mapping.pipeline import edge_line_mask
+
+    corners, views = panel_scene()
+    paint = np.array([[-1.4, 0.55, 4.0], [-0.75, 0.7, 4.0]])
+    lines = {}
+    for v in views:
+        seg, ok = project_segments(paint[None], v.cam_from_world, v.camera)
+        assert ok.all() and (seg >= 0).all() and (seg[..., 0] < v.camera.width).all() and (seg[..., 1] < v.camera.height).all()
+        lines[v.name] = np.concatenate([detected(corners, v, shrink=0.05), seg.reshape(1, 4)])
+    depth = {v.name: raycast_depth(corners, v) for v in views}
+    scene = types.SimpleNamespace(mapping=views)
+    lm = lipmap_linemap(scene, _planes(corners), lines, get_conf("fast"), depth)
+    edges = edge_line_mask(lm)
+    # the panel's 4 edges (plus a tile border that v0 sees exactly behind the panel's bottom edge)
+    assert edges.sum() == lm.metadata["n_edge_lines"] >= 4
+    assert (~edges).sum() == lm.metadata["n_on_plane_lines"] == 1
+    onp = lm.subset(~edges)
+    assert point_line_distance(paint[None], onp.lines[0][None]).max() < 0.005
+    assert point_line_distance(onp.lines, paint[None]).max() < 0.005
+    assert sorted(o.image_name for o in onp.tracks[0]) == [v.name for v in views]
+    assert all(o.line2d_index == 4 for o in onp.tracks[0])
+    # the paper's output (plane edges only)
+    lm_edges = lipmap_linemap(scene, _planes(corners), lines, get_conf({"on_plane_lines": False}), depth)
+    assert len(lm_edges) == edges.sum() and edge_line_mask(lm_edges).all()

@@ -6,7 +6,7 @@ import torch
 from lipmap import geometry as geo
 from lipmap.mapping.assign import PlaneRaycaster, assign_lines, best_edges, corner_edges, line_regions
 from lipmap.mapping.extract import ExtractConfig, build_tracks, depth_residuals, extract_observations, merge_edges
-from lipmap.mapping.losses import assigned_edges, group_loss, line_loss
+from lipmap.mapping.losses import assigned_edges, group_loss, line_loss, robust_px
 from lipmap.poses import make_T
 from lipmap.scene import Camera, View
 from scipy.spatial.transform import Rotation
@@ -109,6 +109,25 @@ def test_line_loss_zero_at_truth_and_gradient_moves_plane_back():
         l.backward()
         opt.step()
     assert l.item() < 0.2 * first
+
+
+def test_robust_line_loss_known_values():
+    d = torch.tensor([0.0, 2.0, 20.0], dtype=torch.float64, requires_grad=True)
+    r = robust_px(d, 2.0)
+    r.sum().backward()
+    assert r.detach().numpy() == pytest.approx([0.0, 2 * np.log(2), 2 * np.log(11)])
+    assert d.grad.numpy() == pytest.approx([1.0, 0.5, 1 / 11])  # L1 at 0, fading with distance
+    # in line_loss: each assignment's distance goes through it (one assignment: the edge 3 px off)
+    corners, views = scene()
+    det = detected(corners, views[0])[:1]
+    u = (det[0, 2:] - det[0, :2]) / np.linalg.norm(det[0, 2:] - det[0, :2])
+    det_off = det + 3.0 * np.tile([-u[1], u[0]], 2)  # the detection 3 px across the edge
+    c = torch.tensor(corners)
+    args = (c, np.zeros(1, int), np.zeros(1, int), torch.tensor(det_off), np.zeros(1, int), views[0].cam_from_world, CAM)
+    plain = line_loss(*args, endpoint_weight=0.0).item()
+    robust = line_loss(*args, endpoint_weight=0.0, robust_scale=2.0).item()
+    assert plain == pytest.approx(3.0, abs=1e-6)
+    assert robust == pytest.approx(2 * np.log1p(plain / 2), abs=1e-6)
 
 
 def test_group_loss():

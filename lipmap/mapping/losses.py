@@ -58,8 +58,18 @@ def group_loss(edges3d: torch.Tensor, line_idx: torch.Tensor) -> torch.Tensor:
     return perp.norm(dim=-1).mean()
 
 
+def robust_px(d: torch.Tensor, scale: float) -> torch.Tensor:
+    """``scale * log(1 + d / scale)`` of pixel distances d >= 0: L1 near 0, gradient 1 / (1 + d / scale).
+
+    An assignment whose edge is many ``scale`` away is usually another surface's edge (a texture line
+    inside a plane is assigned to that plane's nearest edge): its pull fades instead of dragging the
+    plane across the scene.
+    """
+    return scale * torch.log1p(d / scale)
+
+
 def line_loss(corners, plane_idx, edge_idx, det, line_idx, cam_from_world, camera, use_group: bool = False,
-              group_weight: float = 1.0, endpoint_weight: float = 0.5):
+              group_weight: float = 1.0, endpoint_weight: float = 0.5, robust_scale: float = 0.0):
     """Mean over assignments of ``endpoint_weight`` * D_euc + max endpoint-to-line distance (0.5: the
     reference code's form), plus the optional group loss (metres, weighted by ``group_weight``).
 
@@ -81,6 +91,8 @@ def line_loss(corners, plane_idx, edge_idx, det, line_idx, cam_from_world, camer
     proj = torch.where(valid[:, None, None], proj, det.reshape(-1, 2, 2))
     ort_max = geo.perpendicular_distance(proj, det.reshape(-1, 2, 2), reduce="max")
     per = endpoint_weight * euc + ort_max
+    if robust_scale > 0:
+        per = robust_px(per, robust_scale)
     loss = per[valid].mean() if bool(valid.any()) else corners.sum() * 0
     if use_group:
         loss = loss + group_weight * group_loss(edges, line_idx)

@@ -23,12 +23,14 @@ class LineSupervision:
             region pixel, each (line, first-hit plane) pair once, read from the render's first hits.
         endpoint_weight: weight of D_euc in the line loss (see :func:`lipmap.mapping.losses.line_loss`).
         use_group: add the paper's group loss (off in the reference code).
+        robust_scale: full-resolution pixels; > 0 makes each assignment's loss robust
+            (:func:`lipmap.mapping.losses.robust_px`), 0 = the paper's plain distances.
         seed: sampling seed (combined with the iteration, so a resumed run samples the same pixels).
     """
 
     def __init__(self, lines_by_view: dict, weight: float = 0.1, pixels_per_line: int = 1, use_group: bool = False,
                  group_weight: float = 10.0, seed: int = 0,
-                 endpoint_weight: float = 0.5):
+                 endpoint_weight: float = 0.5, robust_scale: float = 0.0):
         self.lines = {k: np.asarray(v, dtype=np.float64).reshape(-1, 4) for k, v in lines_by_view.items()}
         self.weight = weight
         self.pixels_per_line = max(0, pixels_per_line if not use_group else max(2, pixels_per_line))
@@ -36,6 +38,7 @@ class LineSupervision:
         self.group_weight = group_weight
         self.seed = seed
         self.endpoint_weight = endpoint_weight
+        self.robust_scale = robust_scale
         self._regions = {}
         self.last = {}
 
@@ -94,7 +97,7 @@ class LineSupervision:
             return zero
         loss = line_loss(corners, plane[ok], edge[ok], lines_s[li[ok]], li[ok], view.cam_from_world, camera,
                          use_group=self.use_group, group_weight=self.group_weight,
-                         endpoint_weight=self.endpoint_weight)
+                         endpoint_weight=self.endpoint_weight, robust_scale=self.robust_scale * s)
         self.last = {"n_assign": int(ok.sum()), "loss": float(loss.detach())}
         # distances are in training-resolution pixels; express them in full-resolution pixels so the
         # balance with the plane loss does not change with the training scale
