@@ -281,6 +281,14 @@ def gt_from_depth(views: Sequence, voxel: float = 0.01, stride: int = 1, max_dep
     return sums_all / counts_all[:, None]
 
 
+def scene_ground_truth(scene, voxel: float = 0.01):
+    """The mapping ground truth of a :class:`~lipmap.scene.Scene`: its mesh when it has one (synthetic
+    scenes), else the depth of all its views fused by :func:`gt_from_depth` (7-Scenes)."""
+    if getattr(scene, "gt_mesh", None) is not None:
+        return scene.gt_mesh
+    return gt_from_depth(list(scene.mapping) + list(scene.query), voxel=voxel)
+
+
 def write_points_ply(path, points: np.ndarray) -> Path:
     """Binary PLY point cloud (float32)."""
     from .imageio import atomic_path
@@ -461,52 +469,8 @@ def format_metrics(res: dict) -> str:
     return ", ".join(parts)
 
 
-def add_map_eval_parser(subparsers):
-    """`map-eval`: metrics M1/M2 of a line map against a GT mesh / point cloud or fused depth."""
-    p = subparsers.add_parser("map-eval", help="evaluate a line map (M1, M2) against a GT mesh, point cloud or fused depth")
-    p.add_argument("linemap", type=Path, help="linemap.h5, or a LIMAP folder holding finaltracks/")
-    p.add_argument("--gt", type=Path, help="GT mesh or point cloud (.ply/.obj/.npy)")
-    p.add_argument("--dataset", help="fuse the depth of this dataset's mapping views as GT (e.g. 7scenes)")
-    p.add_argument("--root", type=Path, help="dataset root (with --dataset)")
-    p.add_argument("--scene", help="scene name (with --dataset)")
-    p.add_argument("--voxel", type=float, default=0.01, help="voxel size of the fused-depth GT (m)")
-    p.add_argument("--preset", default="default", choices=sorted(confs))
-    p.add_argument("--thresholds", default=None, help="M1 thresholds in metres, comma separated (default 0.05)")
-    p.add_argument("--out", type=Path, help="write the metrics as JSON here")
-    p.set_defaults(func=cli_map_eval)
-    return p
-
-
-def cli_map_eval(args):
-    from .linemap import LineMap
-
-    path = Path(args.linemap)
-    lm = LineMap.from_limap(path) if path.is_dir() else LineMap.load(path)
-    if args.gt is not None:
-        gt = args.gt
-    elif args.dataset:
-        from .datasets import load_scene
-
-        if args.root is None or args.scene is None:
-            raise InputError("--dataset needs --root and --scene")
-        gt = gt_from_depth(load_scene(args.dataset, args.root, args.scene).mapping, voxel=args.voxel)
-    else:
-        raise InputError("give --gt FILE or --dataset/--root/--scene for a fused-depth ground truth")
-    conf = confs[args.preset]
-    if args.thresholds:
-        conf = EvalConf(**{**asdict(conf), "m1_thresholds": tuple(float(t) for t in args.thresholds.split(","))})
-    res = evaluate_linemap(lm, gt, conf)
-    if args.out:
-        from .imageio import write_text_atomic
-
-        write_text_atomic(args.out, json.dumps(res, indent=2))
-    print(json.dumps(res, indent=2))
-    return res
-
-
 __all__ = [
-    "add_map_eval_parser",
-    "cli_map_eval",
+    "scene_ground_truth",
     "EvalConf",
     "confs",
     "GroundTruth",

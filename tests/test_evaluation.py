@@ -185,19 +185,28 @@ def test_m2_lipschitz_shortcut_is_exact():
 
 
 def test_cli_map_eval(tmp_path, capsys):
-    import argparse
+    """``lipmap-loc map-eval`` on a linemap.h5 and on its LIMAP export, with custom thresholds."""
+    from localization.cli import main
 
-    from lipmap.evaluation import add_map_eval_parser
-
-    parser = argparse.ArgumentParser()
-    add_map_eval_parser(parser.add_subparsers())
-    LineMap(top_face_lines()).save(tmp_path / "linemap.h5")
+    lm = LineMap(top_face_lines(), [[("a.png", i, np.zeros(4))] for i in range(3)])
+    lm.save(tmp_path / "linemap.h5")
+    lm.to_limap(tmp_path / "limap")
     BOX.export(tmp_path / "box.ply")
-    args = parser.parse_args(["map-eval", str(tmp_path / "linemap.h5"), "--gt", str(tmp_path / "box.ply"),
-                              "--thresholds", "0.01,0.05", "--out", str(tmp_path / "m.json")])
-    res = args.func(args)
-    assert res["gt"]["kind"] == "mesh" and res["M1"]["line"]["prec@0.01"] == 1.0
-    assert json.loads((tmp_path / "m.json").read_text())["n_lines"] == 3
-    with pytest.raises(InputError):
-        args = parser.parse_args(["map-eval", str(tmp_path / "linemap.h5")])
-        args.func(args)
+    for src, out in ((tmp_path / "linemap.h5", "m.json"), (tmp_path / "limap", "l.json")):
+        assert main(["map-eval", "--linemap", str(src), "--gt", str(tmp_path / "box.ply"),
+                     "--thresholds", "0.01,0.05", "--json", str(tmp_path / out)]) == 0
+        res = json.loads((tmp_path / out).read_text())
+        assert res["gt"]["kind"] == "mesh" and res["M1"]["line"]["prec@0.01"] == 1.0 and res["n_lines"] == 3
+    assert main(["map-eval", "--linemap", str(tmp_path / "linemap.h5")]) == 2
+    assert main(["map-eval", "--linemap", str(tmp_path / "linemap.h5"), "--gt", str(tmp_path / "box.ply"),
+                 "--thresholds", "5cm"]) == 2
+    err = capsys.readouterr().err
+    assert "--gt" in err and "5cm" in err
+
+
+def test_scene_ground_truth_prefers_the_mesh():
+    from types import SimpleNamespace
+
+    from lipmap.evaluation import scene_ground_truth
+
+    assert scene_ground_truth(SimpleNamespace(gt_mesh="mesh.ply", mapping=[], query=[])) == "mesh.ply"

@@ -1,0 +1,61 @@
+"""The README's mapping table for one scene: lipmap (full map and its plane edges alone) vs lift.
+
+    python benchmarks/mapping_table.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
+        --scene redkitchen --out OUT [--preset fast] [--methods lipmap,lift]
+
+Maps with each method into OUT/<method> (an existing linemap.h5 is reused, as `lipmap-loc map` does),
+evaluates against the scene's ground truth (its mesh, else fused depth: the same as `lipmap-loc
+map-eval`) and prints a markdown table; the times are the mapping runs' own (linemap.h5 metadata).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from lipmap.datasets import load_scene
+from lipmap.evaluation import evaluate_linemap, load_ground_truth, scene_ground_truth
+from lipmap.linemap import LineMap
+from lipmap.mapping.pipeline import edge_line_mask, map_scene
+
+
+def row(name: str, lm: LineMap, gt, seconds) -> tuple[str, dict]:
+    res = evaluate_linemap(lm, gt)
+    m1, m2 = res["M1"]["line"], res["M2"]
+    t = "" if seconds is None else f"{seconds:.0f} s"
+    cells = [name, str(len(lm)), f"{m1['prec@0.05']:.3f}", f"{m1['recall@0.05']:.3f}", f"{m1['f@0.05']:.3f}",
+             f"{m2['R@5mm']:.0f}", f"{m2['R@50mm']:.0f}", t]
+    return "| " + " | ".join(cells) + " |", res
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dataset", required=True, choices=["7scenes", "synthetic"])
+    ap.add_argument("--root", type=Path, required=True)
+    ap.add_argument("--scene", required=True)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--preset", default="fast", help="mapping preset of the lipmap run")
+    ap.add_argument("--methods", default="lipmap,lift")
+    args = ap.parse_args(argv)
+    scene = load_scene(args.dataset, args.root, args.scene)
+    gt = load_ground_truth(scene_ground_truth(scene))
+    lines = ["| method | lines | PREC@5cm | RECALL@5cm | F@5cm | R@5mm | R@50mm | mapping time |",
+             "|---|---|---|---|---|---|---|---|"]
+    results = {}
+    for method in args.methods.split(","):
+        lm = LineMap.load(map_scene(scene, args.out / method, args.preset, method))
+        seconds = lm.metadata.get("timings", {}).get("total_s")
+        text, results[method] = row(f"{method} `{args.preset}`" if method == "lipmap" else method, lm, gt, seconds)
+        lines.append(text)
+        if method == "lipmap":
+            edges = edge_line_mask(lm)
+            if not edges.all():
+                text, results["lipmap-edges"] = row("lipmap, plane edges only", lm.subset(edges), gt, None)
+                lines.append(text)
+    print(f"{scene.dataset} {scene.name}:")
+    print("\n".join(lines))
+    (args.out / "mapping_table.json").write_text(json.dumps(results, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()
