@@ -252,20 +252,19 @@ def lift_linemap(scene_views: Sequence, lines, conf: Union[None, str, dict, Lift
     """
     conf = get_conf(conf)
     if isinstance(lines, dict):
-        lines_of = {k: np.asarray(v, dtype=np.float64).reshape(-1, 4) for k, v in lines.items()}
-        source = "the given lines"
+        source, stored = "the given lines", set(lines)
     else:
-        lines_h5 = Path(lines)
-        lines_of = {n: None for n in list_names(lines_h5)}
-        source = lines_h5
-    missing = [v.name for v in scene_views if v.name not in lines_of]
+        source = Path(lines)
+        stored = set(list_names(source))
+    missing = [v.name for v in scene_views if v.name not in stored]
     if missing:
         raise InputError(f"no 2D lines for {len(missing)} views, e.g. {missing[0]!r}", source,
                          hint="run lines2d.detect_lines on these views first")
     seg_w, obs, n_det = [], [], 0
     per_view = []  # (view, 2D lines, index into seg_w for each 2D line or -1)
     for v in tqdm(scene_views, desc="lift", disable=len(scene_views) < 2):
-        L = lines_of[v.name] if lines_of[v.name] is not None else load_lines(lines_h5, v.name).astype(np.float64)
+        L = lines[v.name] if isinstance(lines, dict) else load_lines(source, v.name)
+        L = np.asarray(L, dtype=np.float64).reshape(-1, 4)
         n_det += len(L)
         todo = np.ones(len(L), dtype=bool)
         if skip and v.name in skip:

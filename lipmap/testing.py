@@ -21,7 +21,7 @@ def raycast_depth(corners: np.ndarray, view) -> np.ndarray:
     """True z-depth (H, W) of ``view`` by ray casting rectangles (K, 4, 3); 0 where no rectangle is hit."""
     from .mapping.assign import PlaneRaycaster, plane_depth
 
-    return plane_depth(PlaneRaycaster(corners), view)[0]
+    return plane_depth(PlaneRaycaster(corners), view)
 
 
 def wall_scene(camera: Camera = SMALL_CAMERA):

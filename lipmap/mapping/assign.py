@@ -111,22 +111,16 @@ class PlaneRaycaster:
         return plane, dist
 
 
-def plane_depth(caster: PlaneRaycaster, view) -> tuple[np.ndarray, np.ndarray]:
-    """Z-depth and first-hit plane of every pixel of ``view``, by ray casting the rectangles.
-
-    Returns:
-        **depth** :math:`(H, W)` float32 metres (0 where no plane is hit) and **plane** :math:`(H, W)`
-        int64 (-1 where none), at the view's camera resolution.
-    """
+def plane_depth(caster: PlaneRaycaster, view) -> np.ndarray:
+    """Z-depth :math:`(H, W)` float32 (metres, 0 where no plane is hit) of every pixel of ``view`` at its
+    camera resolution, by ray casting the rectangles (hard borders, first hit)."""
     cam = view.camera
     jj, ii = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
     pix = np.stack([jj.ravel(), ii.ravel()], 1)
     o, d = pixel_rays_world(pix, view.cam_from_world, cam)
     k, t = caster.first_hit(o, d)
     z = t * (d @ view.cam_from_world[:3, :3].T)[:, 2]
-    hit = (k >= 0) & np.isfinite(z)
-    depth = np.where(hit, z, 0).reshape(cam.height, cam.width).astype(np.float32)
-    return depth, np.where(hit, k, -1).reshape(cam.height, cam.width)
+    return np.where((k >= 0) & np.isfinite(z), z, 0).reshape(cam.height, cam.width).astype(np.float32)
 
 
 def best_edges(corners: np.ndarray, plane_idx: np.ndarray, lines2d: np.ndarray, cam_from_world, camera):

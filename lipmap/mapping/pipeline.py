@@ -44,8 +44,8 @@ class MappingConfig:
     robust_scale: float = 2.0  # px (full resolution); > 0: robust line loss (losses.robust_px); 0: paper
     # Detections that no plane edge explains (texture, and lines inside a surface: most of them in real
     # rooms) lifted onto the optimized planes with the ``lift`` procedure (its preset ``lift``), depth ray
-    # cast from the planes. False = the paper's output, plane edges only (RedKitchen mini: 150 edge lines,
-    # F@5cm 0.254; with on-plane lines 3097 lines, F 0.739).
+    # cast from the planes. False = the paper's output, plane edges only (RedKitchen mini, `lipmap-loc map`:
+    # 179 edge lines, F@5cm 0.239, R@50mm 71; with on-plane lines 3127 lines, F 0.716, R@50mm 429).
     on_plane_lines: bool = True
     extract: ExtractConfig = field(default_factory=ExtractConfig)
     lift: str = "lift-merge-loose"  # lipmap.lift preset: method "lift", and the on-plane lines of "lipmap"
@@ -175,7 +175,7 @@ def _add_on_plane_lines(edges, scene, corners, lines_by_view: dict, conf: Mappin
             explained.setdefault(o.image_name, []).append(o.line2d_index)
     caster = PlaneRaycaster(corners)
     logger.info("lifting the detections no plane edge explains onto the planes")
-    onp = lift_linemap(scene.mapping, lines_by_view, conf.lift, depth_of=lambda v: plane_depth(caster, v)[0],
+    onp = lift_linemap(scene.mapping, lines_by_view, conf.lift, depth_of=lambda v: plane_depth(caster, v),
                        skip=explained)
     meta = {**edges.metadata, "n_on_plane_lines": len(onp)}
     # edge lines keep indices 0..n_edge-1, so the planes' edge -> line table stays valid
