@@ -418,6 +418,8 @@ def linemap_figure(linemap, view=None, views=None, corners=None, line_query=None
     if up is None:
         up = up_direction(views, lines.reshape(-1, 3))
     method = linemap.metadata.get("method", "?")
+    if "n_on_plane_lines" in linemap.metadata:  # lipmap with on-plane lines: say how many are plane edges
+        method += f"; {linemap.metadata.get('n_edge_lines', '?')} plane edges"
     n = 2 if view is not None else 1
     with style():
         fig = new_figure(6.8 * n + 0.9, 6.0)
