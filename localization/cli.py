@@ -115,11 +115,16 @@ def cmd_map(args):
 
     from lipmap.datasets.validate import check_scene
 
+    conf = args.preset
+    if args.plane_depth_tol is not None:
+        if not args.plane_depth_tol >= 0:
+            raise InputError(f"--plane-depth-tol must be >= 0 metres, got {args.plane_depth_tol}")
+        conf = {"preset": args.preset, "plane_depth_tol": args.plane_depth_tol}
     scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source,
                        register_depth=not args.no_registration, mapping_step=args.mapping_step,
                        skip_bad_frames=args.skip_bad_frames)
     scene, _ = check_scene(scene, args.skip_bad_frames)
-    path = map_scene(scene, args.out, args.preset, args.method, args.lines, args.overwrite)
+    path = map_scene(scene, args.out, conf, args.method, args.lines, args.overwrite)
     from lipmap.linemap import LineMap
 
     lm = LineMap.load(path)
@@ -196,7 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "than the fast-preset lipmap map, 1.9 vs 2.2 cm median)")
     p.add_argument("--line-query", default=None, choices=["projection", "raycast"])
     p.add_argument("--points", default="sift-n4096", help="built-in point preset (sift-n4096, sift-n2048, sift-n1024-fast)")
-    p.add_argument("--synth-preset", default="small", choices=["small", "default"])
+    p.add_argument("--synth-preset", default="small", choices=["small", "default", "small-noisy-depth"])
     p.add_argument("--pose-source", default="posetxt", choices=["posetxt", "dslam", "sfm"])
     p.add_argument("--no-registration", action="store_true")
     p.add_argument("--mapping-step", type=int, default=1, help="use every k-th mapping frame")
@@ -214,6 +219,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "quick (tests, small scenes), paper (reference settings, plane edges only; hours on a CPU)")
     p.add_argument("--method", default="lipmap", choices=["lipmap", "lift"])
     p.add_argument("--lines", type=Path, default=None, help="2D lines made elsewhere (folder of WireframeGraph JSON / npz, or HDF5)")
+    p.add_argument("--plane-depth-tol", type=float, default=None, metavar="METRES",
+                   help="lipmap: lines inside a surface follow the input depth where the planes are more than this "
+                        "far from it (preset default 0.03, for sensor depth); 0 = on the planes only (noisy or "
+                        "predicted depth)")
     p.add_argument("--pose-source", default="posetxt", choices=["posetxt", "dslam", "sfm"])
     p.add_argument("--no-registration", action="store_true")
     p.add_argument("--mapping-step", type=int, default=1)

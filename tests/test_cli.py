@@ -22,3 +22,22 @@ def test_info_bad_root_is_one_line_error(tmp_path):
     )
     assert r.returncode == 2
     assert "Traceback" not in r.stderr and "scene 'chess' not found" in r.stderr
+
+
+def test_map_lift_then_map_eval(synthetic_root, tmp_path, capsys):
+    """`lipmap-loc map` writes the artifacts and prints the time; map-eval scores them against the mesh."""
+    scene = ["--dataset", "synthetic", "--root", str(synthetic_root), "--scene", "room-s3"]
+    assert main(["map", *scene, "--out", str(tmp_path / "m"), "--method", "lift"]) == 0
+    out = capsys.readouterr().out
+    assert "lines ->" in out and "mapping time:" in out
+    assert {"linemap.h5", "linemap.ply", "lines2d.h5"} <= {p.name for p in (tmp_path / "m").iterdir()}
+    assert main(["map-eval", "--linemap", str(tmp_path / "m" / "linemap.h5"), *scene,
+                 "--json", str(tmp_path / "m.json")]) == 0
+    m = json.loads((tmp_path / "m.json").read_text())
+    assert m["n_lines"] > 100 and m["M1"]["line"]["prec@0.05"] > 0.9  # exact synthetic depth
+
+
+def test_map_bad_plane_depth_tol(synthetic_root, tmp_path, capsys):
+    assert main(["map", "--dataset", "synthetic", "--root", str(synthetic_root), "--scene", "room-s3",
+                 "--out", str(tmp_path), "--plane-depth-tol", "-0.1"]) == 2
+    assert "--plane-depth-tol must be >= 0" in capsys.readouterr().err

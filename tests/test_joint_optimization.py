@@ -137,3 +137,48 @@ def test_on_plane_lines_lift_texture_lines_onto_their_plane():
     # the paper's output (plane edges only)
     lm_edges = lipmap_linemap(scene, _planes(corners), lines, get_conf({"on_plane_lines": False}), depth)
     assert len(lm_edges) == edges.sum() and edge_line_mask(lm_edges).all()
+
+
+def test_on_plane_lines_take_the_input_depth_where_no_plane_models_it():
+    """Where the input depth is > plane_depth_tol from the planes (clutter no plane models), the on-plane
+    lines follow the input depth; within the tolerance (or with tol 0) they stay on the plane."""
+    from lipmap.geometry import project_segments
+    from lipmap.mapping.pipeline import edge_line_mask
+
+    corners, views = panel_scene()
+    paint = np.array([[-1.4, 0.55, 4.0], [-0.75, 0.7, 4.0]])  # on the back wall (z = 4)
+    lines = {}
+    for v in views:
+        seg, _ = project_segments(paint[None], v.cam_from_world, v.camera)
+        lines[v.name] = np.concatenate([detected(corners, v, shrink=0.05), seg.reshape(1, 4)])
+    scene = types.SimpleNamespace(mapping=views)
+    exact = {v.name: raycast_depth(corners, v) for v in views}
+
+    def wall_offsets(depth, tol):
+        lm = lipmap_linemap(scene, _planes(corners), lines, get_conf({"plane_depth_tol": tol}), depth)
+        onp = lm.subset(~edge_line_mask(lm))
+        assert len(onp) >= 1
+        return onp.lines[..., 2] - 4.0
+
+    for off in (0.01, 0.1):  # the sensor puts every surface `off` further along the optical axis
+        shifted = {k: np.where(d > 0, d + off, 0).astype(np.float32) for k, d in exact.items()}
+        assert np.abs(wall_offsets(shifted, 0.0)).max() < 0.005  # plane depth alone
+        z = wall_offsets(shifted, 0.03)
+        if off < 0.03:  # the plane models the surface: its depth wins
+            assert np.abs(z).max() < 0.005
+        else:  # it does not: the input depth (z-depth + 10 cm -> 10 cm behind the wall)
+            assert np.abs(z - off).max() < 0.01
+
+
+def test_plane_or_input_depth_known_values():
+    from lipmap.mapping.assign import plane_or_input_depth
+
+    plane = np.array([[2.0, 2.0, 0.0, 3.0]], dtype=np.float32)
+    inp = np.array([[2.01, 2.2, 1.5, 0.0]], dtype=np.float32)
+    np.testing.assert_allclose(plane_or_input_depth(plane, inp, 0.03), [[2.0, 2.2, 1.5, 3.0]])
+    np.testing.assert_allclose(plane_or_input_depth(plane, inp, 0.0), plane)
+    np.testing.assert_allclose(plane_or_input_depth(plane, None, 0.03), plane)
+    # input depth at half the resolution is sampled to the plane depth's size
+    big = np.full((4, 6), 2.0, dtype=np.float32)
+    small = np.full((2, 3), 2.5, dtype=np.float32)
+    np.testing.assert_allclose(plane_or_input_depth(big, small, 0.03), np.full((4, 6), 2.5))

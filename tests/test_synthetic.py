@@ -24,6 +24,7 @@ from lipmap.datasets.synthetic import (
     SynthConfig,
     add_synth_parser,
     cli_synth,
+    corrupt_depth,
     generate_scene,
     look_rotation,
 )
@@ -148,6 +149,39 @@ class TestDeterminism:
         tiny = generate_scene(tmp_path, seed=3, preset=TINY)
         assert (tiny / "mesh.ply").read_bytes() == (scene_dir / "mesh.ply").read_bytes()
         assert (tiny / "surfaces.json").read_bytes() == (scene_dir / "surfaces.json").read_bytes()
+
+
+class TestNoisyDepth:
+    def test_corrupt_depth_statistics(self):
+        z = np.full((240, 320), 3.0)
+        z[:10] = 0.0  # no surface stays no surface
+        a = corrupt_depth(z, np.random.default_rng(0), 0.02)
+        np.testing.assert_array_equal(a, corrupt_depth(z, np.random.default_rng(0), 0.02))  # seeded
+        assert (a[:10] == 0).all() and (a[10:] > 0).all()
+        rel = a[10:] / 3.0 - 1.0
+        # smooth warp: neighbours differ by the per-pixel noise only (Kinect sigma at 3 m: 14 mm)
+        step = np.diff(a[10:], axis=1).std() / np.sqrt(2)
+        assert 0.010 < step < 0.018
+        assert 0.005 < np.abs(rel).mean() < 0.05  # the 2 % warp dominates
+        no_warp = corrupt_depth(z, np.random.default_rng(0), 0.0)[10:]
+        assert abs(no_warp.mean() - 3.0) < 1e-3 and 0.012 < no_warp.std() < 0.016  # per-pixel noise only
+
+    def test_preset_corrupts_only_the_depth_files(self, tmp_path):
+        from dataclasses import replace
+
+        clean = generate_scene(tmp_path / "c", seed=3, preset=TINY)
+        noisy = generate_scene(tmp_path / "n", seed=3, preset=replace(TINY, depth_warp_sigma=0.02))
+        assert json.loads((noisy / "scene.json").read_text())["depth_warp_sigma"] == 0.02
+        for kind in ("color", "normal", "pose"):
+            f = f"seq-01/frame-000001.{kind}.{'txt' if kind == 'pose' else 'png'}"
+            assert (clean / f).read_bytes() == (noisy / f).read_bytes()
+        dc = read_depth(clean / "seq-01/frame-000001.depth.png")
+        dn = read_depth(noisy / "seq-01/frame-000001.depth.png")
+        m = dc > 0
+        assert ((dn > 0) == m).all()
+        err = np.abs(dn - dc)[m]
+        assert np.median(err) > 5e-3 and np.median(err / dc[m]) < 0.06
+        assert SYNTH_PRESETS["small-noisy-depth"].depth_warp_sigma == 0.02
 
 
 class TestGeometry:

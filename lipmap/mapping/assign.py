@@ -7,6 +7,8 @@ edges e_k = (v_k, v_{k+1 mod 4}).
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 
 from .. import geometry as geo
@@ -121,6 +123,36 @@ def plane_depth(caster: PlaneRaycaster, view) -> np.ndarray:
     k, t = caster.first_hit(o, d)
     z = t * (d @ view.cam_from_world[:3, :3].T)[:, 2]
     return np.where((k >= 0) & np.isfinite(z), z, 0).reshape(cam.height, cam.width).astype(np.float32)
+
+
+def plane_or_input_depth(plane_z: np.ndarray, input_z: Optional[np.ndarray], tol: float) -> np.ndarray:
+    """The depth the on-plane lines are lifted with: the planes' where they model the surface, the input's
+    elsewhere.
+
+    Planes average the input depth's noise over a region (the paper's argument for lifting onto them), but
+    on clutter no plane models (chair backs, mugs) they can sit centimetres off it; there the input depth
+    is the better evidence.
+
+    Args:
+        plane_z: :math:`(H, W)` ray-cast plane depth (0 = no plane hit).
+        input_z: :math:`(H, W)` input (sensor / predicted) depth (0 = invalid; resized by nearest sampling if
+            its size differs), or None.
+        tol: metres; a pixel whose plane depth is more than ``tol`` from a valid input depth (or that hits no
+            plane) takes the input depth. ``tol <= 0`` or no input: the plane depth alone.
+
+    Returns:
+        :math:`(H, W)` float32 depth, 0 where neither is valid.
+    """
+    plane_z = np.asarray(plane_z, dtype=np.float32)
+    if input_z is None or tol <= 0:
+        return plane_z
+    input_z = np.asarray(input_z, dtype=np.float32)
+    if input_z.shape != plane_z.shape:  # depth stored at another resolution than the colour image
+        import cv2
+
+        input_z = cv2.resize(input_z, plane_z.shape[::-1], interpolation=cv2.INTER_NEAREST)
+    use_input = (input_z > 0) & ((plane_z <= 0) | (np.abs(plane_z - input_z) > tol))
+    return np.where(use_input, input_z, plane_z)
 
 
 def best_edges(corners: np.ndarray, plane_idx: np.ndarray, lines2d: np.ndarray, cam_from_world, camera):
