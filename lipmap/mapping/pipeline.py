@@ -43,7 +43,7 @@ class MappingConfig:
     endpoint_weight: float = 0.0  # D_euc weight in the line loss (0.5: reference code)
     robust_scale: float = 2.0  # px (full resolution); > 0: robust line loss (losses.robust_px); 0: paper
     # Detections that no plane edge explains (texture, and lines inside a surface: most of them in real
-    # rooms) lifted onto the optimized planes with the ``lift`` procedure (preset ``lift`` below), depth ray
+    # rooms) lifted onto the optimized planes with the ``lift`` procedure (the preset in field ``lift``), depth ray
     # cast from the planes. False = the paper's output, plane edges only (RedKitchen mini, `lipmap-loc map`:
     # 179 edge lines, F@5cm 0.239, R@50mm 71; with on-plane lines 3282 lines, F 0.786, R@50mm 474).
     on_plane_lines: bool = True
