@@ -1,16 +1,19 @@
 """The README's mapping table for one scene: lipmap (full map and its plane edges alone) vs lift.
 
     python benchmarks/mapping_table.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
-        --scene redkitchen --out OUT [--preset fast] [--methods lipmap,lift]
+        --scene redkitchen --out OUT [--preset fast] [--methods lipmap,lift] [--plane-depth-tols 0]
 
 Maps with each method into OUT/<method> (an existing linemap.h5 is reused, as `lipmap-loc map` does),
 evaluates against the scene's ground truth (its mesh, else fused depth: the same as `lipmap-loc
 map-eval`) and prints a markdown table; the times are the mapping runs' own (linemap.h5 metadata).
+``--plane-depth-tols`` adds lipmap rows with other ``MappingConfig.plane_depth_tol`` values, built on the
+same planes (OUT/lipmap-tol<value>, reusing OUT/lipmap's planes.h5 and lines2d.h5).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 from pathlib import Path
 
 from lipmap.datasets import load_scene
@@ -36,6 +39,7 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--preset", default="fast", help="mapping preset of the lipmap run")
     ap.add_argument("--methods", default="lipmap,lift")
+    ap.add_argument("--plane-depth-tols", default="", help="extra lipmap rows, comma separated metres")
     args = ap.parse_args(argv)
     scene = load_scene(args.dataset, args.root, args.scene)
     gt = load_ground_truth(scene_ground_truth(scene))
@@ -51,6 +55,16 @@ def main(argv=None):
             edges = edge_line_mask(lm)
             if not edges.all():
                 text, results["lipmap-edges"] = row("lipmap, plane edges only", lm.subset(edges), gt, None)
+                lines.append(text)
+            for tol in filter(None, args.plane_depth_tols.split(",")):
+                out = args.out / f"lipmap-tol{tol}"
+                out.mkdir(parents=True, exist_ok=True)
+                for name in ("planes.h5", "lines2d.h5"):
+                    if not (out / name).exists():
+                        shutil.copy(args.out / method / name, out / name)
+                conf = {"preset": args.preset, "plane_depth_tol": float(tol)}
+                text, results[f"lipmap-tol{tol}"] = row(f"lipmap, plane_depth_tol {tol}",
+                                                        LineMap.load(map_scene(scene, out, conf, method)), gt, None)
                 lines.append(text)
     print(f"{scene.dataset} {scene.name}:")
     print("\n".join(lines))
