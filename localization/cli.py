@@ -138,7 +138,13 @@ def cmd_map_eval(args):
     from lipmap.linemap import LineMap
 
     path = Path(args.linemap)
+    if args.min_support < 1:
+        raise InputError(f"--min-support must be >= 1 image, got {args.min_support}")
     lm = LineMap.from_limap(path) if path.is_dir() else LineMap.load(path)
+    if args.min_support > 1:
+        n_all = len(lm)
+        lm = lm.subset(lm.supports[:, 0] >= args.min_support)
+        print(f"{len(lm)} of {n_all} lines are seen in >= {args.min_support} images")
     if args.gt is not None:
         gt = args.gt
     else:
@@ -154,6 +160,7 @@ def cmd_map_eval(args):
         except ValueError:
             raise InputError(f"--thresholds {args.thresholds!r}: give metres separated by commas, e.g. 0.02,0.05")
     res = evaluate_linemap(lm, gt, **overrides)
+    res["min_support"] = args.min_support
     print(format_metrics(res))
     from lipmap.viz import plot_pr_curve
 
@@ -234,6 +241,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--linemap", type=Path, required=True, help="linemap.h5, or a LIMAP folder holding finaltracks/")
     p.add_argument("--gt", type=Path, default=None, help="GT mesh or point cloud (PLY)")
     p.add_argument("--thresholds", default=None, help="M1 thresholds in metres, comma separated (default 0.05)")
+    p.add_argument("--min-support", type=int, default=1, metavar="N",
+                   help="evaluate only the lines seen in at least N images (LIMAP's n_visible_views; default 1: all)")
     p.add_argument("--dataset", choices=["7scenes", "synthetic"])
     p.add_argument("--root", type=Path)
     p.add_argument("--scene")

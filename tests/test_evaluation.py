@@ -210,3 +210,22 @@ def test_scene_ground_truth_prefers_the_mesh():
     from lipmap.evaluation import scene_ground_truth
 
     assert scene_ground_truth(SimpleNamespace(gt_mesh="mesh.ply", mapping=[], query=[])) == "mesh.ply"
+
+
+def test_cli_map_eval_min_support(tmp_path, capsys):
+    """``--min-support N`` scores only the lines seen in >= N images (LIMAP's n_visible_views)."""
+    from localization.cli import main
+
+    tracks = [[("a.png", 0, np.zeros(4)), ("b.png", 3, np.zeros(4))], [("a.png", 1, np.zeros(4))],
+              [("a.png", 2, np.zeros(4)), ("a.png", 4, np.zeros(4))]]  # 2 images; 1; 1 image twice
+    LineMap(top_face_lines(), tracks).save(tmp_path / "linemap.h5")
+    BOX.export(tmp_path / "box.ply")
+    args = ["map-eval", "--linemap", str(tmp_path / "linemap.h5"), "--gt", str(tmp_path / "box.ply")]
+    assert main([*args, "--min-support", "2", "--json", str(tmp_path / "m.json")]) == 0
+    res = json.loads((tmp_path / "m.json").read_text())
+    assert res["n_lines"] == 1 and res["min_support"] == 2
+    assert "1 of 3 lines are seen in >= 2 images" in capsys.readouterr().out
+    assert main([*args, "--min-support", "3", "--json", str(tmp_path / "e.json")]) == 0  # no line left
+    assert json.loads((tmp_path / "e.json").read_text())["n_lines"] == 0
+    assert main([*args, "--min-support", "0"]) == 2
+    assert "--min-support must be >= 1" in capsys.readouterr().err
