@@ -82,6 +82,27 @@ def test_extraction_rejects_misaligned_planes():
     assert 0 not in kept_edges and 2 not in kept_edges  # vertical edges (x+ and x-) rejected
 
 
+def test_fast_preset_extraction_tolerates_half_resolution_planes():
+    """A plane 1.5 cm off (~1.3 px at 3 m: what half-resolution training leaves) keeps its x+ edge under
+    the ``fast`` preset's 2 px / 0.02 rad but not under the paper's 1 px / 0.01 rad; 3 cm (~2.6 px) is
+    rejected by both."""
+    from lipmap.mapping.pipeline import get_conf
+
+    corners, views = scene()
+    lines_by_view = {v.name: detected(corners, v) for v in views}
+
+    def vertical_kept(shift, conf):
+        moved = corners.copy()
+        moved[0] += [shift, 0.0, 0.0]
+        obs = extract_observations(moved, views, lines_by_view, conf, progress=False)
+        return 0 in set(np.unique(obs["edge"][obs["plane"] == 0]))
+
+    fast, paper = get_conf("fast").extract, get_conf("paper").extract
+    assert (paper.max_dist, paper.max_angle) == (1.0, 0.01)  # the paper's thresholds
+    assert vertical_kept(0.015, fast) and not vertical_kept(0.015, paper)
+    assert not vertical_kept(0.03, fast)
+
+
 def test_merge_modes():
     corners, views = scene()
     lines_by_view = {v.name: detected(corners, v, shrink=0.05) for v in views}
