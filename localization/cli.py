@@ -205,7 +205,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="fast", choices=["fast", "quick", "paper"], help="mapping preset")
     p.add_argument("--method", default="lift", choices=["lipmap", "lift"],
                    help="line map method (default lift: on the RedKitchen mini with 10 point matches it helps the pose more "
-                        "than the fast-preset lipmap map, 1.9 vs 2.3 cm median)")
+                        "than the fast-preset lipmap map, 1.9 vs 2.2 cm median)")
     p.add_argument("--line-query", default=None, choices=["projection", "raycast"])
     p.add_argument("--points", default="sift-n4096", help="built-in point preset (sift-n4096, sift-n2048, sift-n1024-fast)")
     p.add_argument("--synth-preset", default="small", choices=["small", "default", "small-noisy-depth"])

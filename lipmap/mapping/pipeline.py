@@ -45,12 +45,13 @@ class MappingConfig:
     # Detections that no plane edge explains (texture, and lines inside a surface: most of them in real
     # rooms) lifted onto the optimized planes with the ``lift`` procedure (the preset in field ``lift``), depth ray
     # cast from the planes. False = the paper's output, plane edges only (RedKitchen mini, `lipmap-loc map`:
-    # 179 edge lines, F@5cm 0.239, R@50mm 71; with on-plane lines 3282 lines, F 0.786, R@50mm 474).
+    # 334 edge lines, F@5cm 0.370, R@50mm 121; with on-plane lines 3411 lines, F 0.793, R@50mm 518).
     on_plane_lines: bool = True
     # On-plane lines take the input depth where the planes are more than this far from it (metres; 0 = plane
     # depth alone): on clutter no plane models, the planes sit a median 4.7 cm off the sensor depth
-    # (RedKitchen). RedKitchen mini F@5cm / R@50mm at 0 / 1 / 2 / 3 / 5 cm: 0.716 / 0.785 / 0.785 / 0.786 /
-    # 0.778, 429 / 462 / 464 / 474 / 470; room-s0 (exact depth) 0.428 -> 0.439 at 3 cm.
+    # (RedKitchen). RedKitchen mini F@5cm / R@50mm at 0 / 1 / 2 / 3 / 5 cm (with the paper's extraction
+    # thresholds): 0.716 / 0.785 / 0.785 / 0.786 / 0.778, 429 / 462 / 464 / 474 / 470; room-s0 (exact
+    # depth) 0.428 -> 0.439 at 3 cm. Noisy depth (synthetic preset small-noisy-depth): 0 is as good.
     plane_depth_tol: float = 0.03
     # Extraction: the paper's 1 px / 0.01 rad (ExtractConfig defaults, preset "paper") assume planes trained at
     # full resolution to convergence; "fast" trains RedKitchen at half resolution, where 1 full-res px is half
