@@ -129,7 +129,10 @@ def cmd_map(args):
 
     lm = LineMap.load(path)
     t = lm.metadata.get("timings", {})
-    print(f"{len(lm)} lines -> {path}")
+    kinds = ""
+    if "n_on_plane_lines" in lm.metadata:
+        kinds = f" ({lm.metadata['n_edge_lines']} plane edges + {lm.metadata['n_on_plane_lines']} on-plane lines)"
+    print(f"{len(lm)} lines{kinds} -> {path}")
     print(f"mapping time: {t.get('total_s', float('nan')):.1f} s ({json.dumps({k: round(v, 1) for k, v in t.items()})})")
 
 
