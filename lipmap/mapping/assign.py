@@ -148,9 +148,9 @@ def plane_or_input_depth(plane_z: np.ndarray, input_z: Optional[np.ndarray], tol
         return plane_z
     input_z = np.asarray(input_z, dtype=np.float32)
     if input_z.shape != plane_z.shape:  # depth stored at another resolution than the colour image
-        import cv2
+        from ..planes.init import resize_nearest
 
-        input_z = cv2.resize(input_z, plane_z.shape[::-1], interpolation=cv2.INTER_NEAREST)
+        input_z = resize_nearest(input_z, plane_z.shape[1], plane_z.shape[0])
     use_input = (input_z > 0) & ((plane_z <= 0) | (np.abs(plane_z - input_z) > tol))
     return np.where(use_input, input_z, plane_z)
 
