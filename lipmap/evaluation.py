@@ -254,7 +254,7 @@ def gt_from_depth(views: Sequence, voxel: float = 0.01, stride: int = 1, max_dep
     """
     from tqdm import tqdm
 
-    from .datasets.registration import backproject
+    from .geometry import backproject_depth
     from .poses import invert_T
 
     # per-frame voxel sums first (a frame's 300k points shrink ~5x at 1 cm), one merge at the end
@@ -266,7 +266,7 @@ def gt_from_depth(views: Sequence, voxel: float = 0.01, stride: int = 1, max_dep
             d[::stride, ::stride] = depth[::stride, ::stride]
             depth = d
         depth = np.where(depth < max_depth, depth, 0)
-        pts, _ = backproject(depth, v.camera)
+        pts, _ = backproject_depth(depth, v.camera)
         if not len(pts):
             continue
         T = invert_T(v.cam_from_world)

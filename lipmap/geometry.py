@@ -156,6 +156,15 @@ def project_cam_points(points_cam, camera):
     return xp.stack([u, v], axis=-1), z
 
 
+def backproject_depth(depth: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame 3D points :math:`(N, 3)` of the valid (> 0) pixels of ``depth`` :math:`(H, W)`, and their
+    flat pixel indices :math:`(N,)`; rays through the pixel centres (COLMAP convention)."""
+    rays = camera.pixel_rays().reshape(-1, 3)
+    d = depth.reshape(-1)
+    idx = np.flatnonzero(d > 0)
+    return rays[idx] * d[idx, None], idx
+
+
 def clip_segments_near(segments_cam, near: float = 1e-3):
     """Clip camera-frame 3D segments to the half-space z >= near.
 

@@ -46,6 +46,7 @@ from .geometry import (
 from .linemap import LineMap
 from .lines2d import list_names, load_lines
 from .poses import invert_T
+from .presets import resolve
 
 
 @dataclass(frozen=True)
@@ -79,17 +80,9 @@ confs = {
 }
 
 
-def get_conf(conf: Union[None, str, dict, LiftConf]) -> LiftConf:
-    if conf is None:
-        return confs["lift"]
-    if isinstance(conf, LiftConf):
-        return conf
-    if isinstance(conf, str):
-        if conf not in confs:
-            raise InputError(f"unknown lift preset {conf!r}", hint=f"choose one of {sorted(confs)}")
-        return confs[conf]
-    base = confs[conf.get("preset", "lift")]
-    return replace(base, **{k: v for k, v in conf.items() if k != "preset"})
+def get_conf(conf: Union[None, str, dict, LiftConf] = None) -> LiftConf:
+    """A :class:`LiftConf` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
+    return resolve(conf, confs, "lift", default="lift")
 
 
 # ----------------------------------------------------------------------------------------------

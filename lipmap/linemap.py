@@ -126,8 +126,9 @@ class LineMap:
     # ------------------------------------------------------------------------------------------
     # HDF5
     # ------------------------------------------------------------------------------------------
-    def save(self, path) -> Path:
-        """Write ``linemap.h5`` atomically (see the module docstring for the layout)."""
+    def save(self, path, stamp=None) -> Path:
+        """Write ``linemap.h5`` atomically (see the module docstring for the layout); ``stamp``
+        (:class:`lipmap.artifacts.Stamp`) records the settings and inputs that made the map."""
         path = Path(path)
         names = self.image_names()
         name_id = {n: i for i, n in enumerate(names)}
@@ -142,6 +143,8 @@ class LineMap:
                 f.attrs["format"] = FORMAT
                 f.attrs["version"] = VERSION
                 f.attrs["metadata"] = json.dumps(self.metadata, default=_json_default)
+                for k, v in (stamp.h5_attrs() if stamp is not None else {}).items():
+                    f.attrs[k] = v
                 f.create_dataset("lines", data=self.lines)
                 f.create_dataset("supports", data=self.supports)
                 g = f.create_group("tracks")

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import json
 import shutil
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Iterable, Optional, Sequence, Union
 
@@ -33,6 +33,7 @@ from . import logger
 from .errors import InputError
 from .geometry import clip_segments_to_image
 from .imageio import atomic_path, read_color
+from .presets import resolve
 
 REFERENCE_SIZE = (640, 480)
 
@@ -69,19 +70,9 @@ confs = {
 }
 
 
-def get_conf(conf: Union[None, str, LineDetectorConf, dict]) -> LineDetectorConf:
-    if conf is None:
-        return confs["lsd"]
-    if isinstance(conf, LineDetectorConf):
-        return conf
-    if isinstance(conf, str):
-        if conf not in confs:
-            raise InputError(f"unknown line detector preset {conf!r}", hint=f"choose one of {sorted(confs)}")
-        return confs[conf]
-    if isinstance(conf, dict):
-        base = confs[conf.get("preset", "lsd")]
-        return replace(base, **{k: v for k, v in conf.items() if k != "preset"})
-    raise TypeError(f"conf must be a preset name, dict or LineDetectorConf, got {type(conf)}")
+def get_conf(conf: Union[None, str, LineDetectorConf, dict] = None) -> LineDetectorConf:
+    """A :class:`LineDetectorConf` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
+    return resolve(conf, confs, "2D line detector", default="lsd")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -194,17 +185,18 @@ def _write_groups(out_h5: Path, results: dict, attrs: dict, overwrite_names: Ite
                 g.create_dataset("scores", data=np.asarray(scores, np.float32).reshape(-1))
 
 
-def _check_attrs(out_h5: Path, detector: str, conf_json: str):
-    if not out_h5.exists():
-        return
-    with h5py.File(out_h5, "r") as f:
-        old_det, old_conf = f.attrs.get("detector"), f.attrs.get("conf")
-    if old_det is not None and (old_det != detector or old_conf != conf_json):
-        raise InputError(
-            f"holds lines from detector {old_det!r} with other settings ({old_conf}); refusing to mix them",
-            out_h5,
-            hint="pass overwrite=True or another output file",
-        )
+def lines_stamp(detector: str, settings: dict):
+    """The :class:`~lipmap.artifacts.Stamp` of a ``lines2d.h5`` made by ``detector`` with ``settings``."""
+    from .artifacts import Stamp
+
+    return Stamp("lines2d", {"detector": detector, "conf": settings})
+
+
+def _start(out_h5: Path, stamp, overwrite: bool) -> set:
+    """Names already in ``out_h5`` when the same settings made it (resume); raises if others did."""
+    from .artifacts import reuse
+
+    return set(list_names(out_h5)) if reuse(out_h5, stamp, overwrite, "2D lines") else set()
 
 
 def _image_items(images, image_root=None):
@@ -247,17 +239,16 @@ def detect_lines(
     """
     conf = get_conf(conf)
     out_h5 = Path(out_h5)
-    if overwrite and out_h5.exists():
-        out_h5.unlink()
     conf_json = conf.to_json()
-    _check_attrs(out_h5, conf.name, conf_json)
+    stamp = lines_stamp(conf.name, asdict(conf))
+    done = _start(out_h5, stamp, overwrite)
     items = _image_items(images, image_root)
-    done = set(list_names(out_h5))
     todo = [(n, ld) for n, ld in items if n not in done]
     if len(todo) < len(items):
         logger.info("Skipping %d images already in %s.", len(items) - len(todo), out_h5)
     logger.info("Detecting 2D lines in %d images with %s.", len(todo), conf_json)
-    attrs = {"detector": conf.name, "conf": conf_json, "pixel_convention": "colmap (pixel centre at i + 0.5)"}
+    attrs = {"detector": conf.name, "conf": conf_json, "pixel_convention": "colmap (pixel centre at i + 0.5)",
+             **stamp.h5_attrs()}
     pending, n_lines = {}, []
     for name, load in tqdm(todo, desc="lines2d", disable=len(todo) < 2):
         lines, scores = detect_lines_image(load(), conf)
@@ -423,15 +414,12 @@ def import_lines(
     source, out_h5 = Path(source), Path(out_h5)
     if not source.exists():
         raise InputError("line source is missing", source)
-    if overwrite and out_h5.exists():
-        out_h5.unlink()
     offset = 0.0 if pixel_offset is None else float(pixel_offset)
-    conf_json = json.dumps(
-        {"source": str(source), "pixel_offset": offset, "min_score": min_score, "min_length": min_length,
-         "max_lines": max_lines}, sort_keys=True
-    )
-    _check_attrs(out_h5, detector_name, conf_json)
-    done = set(list_names(out_h5))
+    settings = {"source": str(source.resolve()), "pixel_offset": offset, "min_score": min_score,
+                "min_length": min_length, "max_lines": max_lines}
+    conf_json = json.dumps(settings, sort_keys=True)
+    stamp = lines_stamp(detector_name, settings)
+    done = _start(out_h5, stamp, overwrite)
     results = {}
     for im in tqdm(images, desc="import lines", disable=len(images) < 2):
         name = im.name if hasattr(im, "name") else str(im)
@@ -457,7 +445,8 @@ def import_lines(
         if len(lines) == 0:
             logger.warning("No lines imported for %s.", name)
         results[name] = (lines, scores)
-    attrs = {"detector": detector_name, "conf": conf_json, "pixel_convention": "colmap (pixel centre at i + 0.5)"}
+    attrs = {"detector": detector_name, "conf": conf_json, "pixel_convention": "colmap (pixel centre at i + 0.5)",
+             **stamp.h5_attrs()}
     if results or not out_h5.exists():
         _write_groups(out_h5, results, attrs)
     logger.info("Imported lines for %d images into %s.", len(results), out_h5)
@@ -476,4 +465,5 @@ __all__ = [
     "read_wireframe_json",
     "read_lines_array",
     "import_lines",
+    "lines_stamp",
 ]

@@ -38,23 +38,22 @@ def wall_scene(camera: Camera = SMALL_CAMERA):
     return np.stack([wall, back]), views
 
 
-def fault_point(name: str) -> None:
-    """Fault injection for the interruption tests: SIGKILL this process when LIPMAP_FAULT == name.
+def kill_at(event: str, count: int = 1):
+    """A pipeline ``checkpoint`` callback that SIGKILLs this process at the ``count``-th ``event``.
 
-    Placed after an artifact or a journal entry is written, so the tests can check that a run killed
-    exactly there resumes from what it left and ends with the same results as an uninterrupted run.
+    The pipelines call ``checkpoint(event)`` right after an artifact or a journal entry is written, so
+    a test can kill a run exactly there and check that a rerun resumes from what it left and ends with
+    the same results as an uninterrupted run.
     """
     import os
     import signal
 
-    want = os.environ.get("LIPMAP_FAULT")
-    if not want:
-        return
-    key, _, count = want.partition(":")
-    if key != name:
-        return
-    counter = f"_LIPMAP_FAULT_COUNT_{name}"
-    n = int(os.environ.get(counter, "0")) + 1
-    os.environ[counter] = str(n)
-    if n >= int(count or 1):
-        os.kill(os.getpid(), signal.SIGKILL)
+    seen = {"n": 0}
+
+    def checkpoint(name: str) -> None:
+        if name == event:
+            seen["n"] += 1
+            if seen["n"] >= count:
+                os.kill(os.getpid(), signal.SIGKILL)
+
+    return checkpoint

@@ -21,7 +21,7 @@ def _scene_names(dataset: str, root, scenes: str | None) -> list[str]:
         return [s.strip() for s in scenes.split(",") if s.strip()]
     found = list_scenes(dataset, root)
     if not found:
-        raise InputError(f"no scenes found (no <scene>/TrainSplit.txt)", root)
+        raise InputError("no scenes found (no <scene>/TrainSplit.txt)", root)
     if dataset == "7scenes" and scenes == "all":
         return [s for s in SEVENSCENES_SCENES if s in found] or found
     return found
@@ -120,6 +120,8 @@ def cmd_map(args):
         if not args.plane_depth_tol >= 0:
             raise InputError(f"--plane-depth-tol must be >= 0 metres, got {args.plane_depth_tol}")
         conf = {"preset": args.preset, "plane_depth_tol": args.plane_depth_tol}
+    if args.mapping_step < 1:
+        raise InputError(f"--mapping-step must be >= 1, got {args.mapping_step}")
     scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source,
                        register_depth=not args.no_registration, mapping_step=args.mapping_step,
                        skip_bad_frames=args.skip_bad_frames)
@@ -177,25 +179,50 @@ def cmd_map_eval(args):
         print(f"metrics: {args.json}")
 
 
+POSE_SOURCES = ("posetxt", "dslam", "sfm")
+
+
 def _add_dataset_args(p, scenes=True):
     p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True)
     p.add_argument("--root", type=Path, required=True, help="dataset root (holds <scene>/TrainSplit.txt)")
     if scenes:
         p.add_argument("--scenes", default=None, help="comma-separated scene names, or 'all' (default: every scene found)")
-    p.add_argument("--pose-source", default="posetxt", choices=["posetxt", "dslam", "sfm"],
+    _add_pose_args(p)
+
+
+def _add_pose_args(p, registration: bool = True):
+    p.add_argument("--pose-source", default="posetxt", choices=POSE_SOURCES,
                    help="poses for mapping AND evaluation (7-Scenes pose.txt or pseudo-GT lists)")
-    p.add_argument("--no-registration", action="store_true", help="use raw depth as if it were the colour camera's")
+    if registration:
+        p.add_argument("--no-registration", action="store_true", help="use raw depth as if it were the colour camera's")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="lipmap-loc", description=__doc__.splitlines()[0])
-    ap.add_argument("-v", "--verbose", action="store_true")
-    sub = ap.add_subparsers(dest="command", required=True)
+def _add_mapping_args(p, method_default: str):
+    from lipmap.mapping.pipeline import METHODS
+    from lipmap.mapping.pipeline import confs as mapping_confs
 
+    p.add_argument("--preset", default="fast", choices=list(mapping_confs),
+                   help="mapping preset: fast (CPU; plane edges + lines lifted onto the planes), quick (tests, small "
+                        "scenes), paper (reference settings, plane edges only; hours on a CPU)")
+    p.add_argument("--method", default=method_default, choices=list(METHODS), help="line map method")
+    p.add_argument("--mapping-step", type=int, default=1, help="use every k-th mapping frame")
+    p.add_argument("--skip-bad-frames", action="store_true", help="skip unreadable mapping frames (default: stop with an error)")
+    p.add_argument("--overwrite", action="store_true", help="remake the artifacts instead of reusing them")
+
+
+def _add_info_parser(sub):
     p = sub.add_parser("info", help="summarise the scenes of a dataset root")
     _add_dataset_args(p)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_info)
+
+
+def _add_eval_parser(sub):
+    from lipmap.datasets.synthetic import SYNTH_PRESETS
+
+    from .linequery import LINE_QUERY_METHODS
+    from .pipeline import LocalizationConfig
+    from .points import confs as point_confs
 
     p = sub.add_parser("eval", help="localization benchmark: map, localize point-only and point+line, evaluate")
     p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True)
@@ -205,41 +232,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hloc", type=Path, default=None, help="hloc outputs, one folder per scene (sfm model, features, matches, pairs)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-point-matches", type=int, default=None, help="seeded random subset of N 2D-3D point matches per query")
-    p.add_argument("--preset", default="fast", choices=["fast", "quick", "paper"], help="mapping preset")
-    p.add_argument("--method", default="lift", choices=["lipmap", "lift"],
-                   help="line map method (default lift: on the RedKitchen mini with 10 point matches it helps the pose more "
-                        "than the fast-preset lipmap map, 1.9 vs 2.2 cm median)")
-    p.add_argument("--line-query", default=None, choices=["projection", "raycast"])
-    p.add_argument("--points", default="sift-n4096", help="built-in point preset (sift-n4096, sift-n2048, sift-n1024-fast)")
-    p.add_argument("--synth-preset", default="small", choices=["small", "default", "small-noisy-depth"])
-    p.add_argument("--pose-source", default="posetxt", choices=["posetxt", "dslam", "sfm"])
-    p.add_argument("--no-registration", action="store_true")
-    p.add_argument("--mapping-step", type=int, default=1, help="use every k-th mapping frame")
-    p.add_argument("--skip-bad-frames", action="store_true", help="skip unreadable mapping frames (default: stop with an error)")
-    p.add_argument("--overwrite", action="store_true")
+    _add_mapping_args(p, method_default=LocalizationConfig().map_method)
+    p.add_argument("--line-query", default=None, choices=list(LINE_QUERY_METHODS))
+    p.add_argument("--points", default="sift-n4096", choices=list(point_confs), help="built-in point preset")
+    p.add_argument("--synth-preset", default="small", choices=list(SYNTH_PRESETS))
+    _add_pose_args(p)
     p.set_defaults(func=cmd_eval)
 
+
+def _add_map_parser(sub):
     p = sub.add_parser("map", help="build a line map (linemap.h5, linemap.ply, planes.ply)")
     p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True)
     p.add_argument("--root", type=Path, required=True)
     p.add_argument("--scene", required=True)
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--preset", default="fast", choices=["fast", "quick", "paper"],
-                   help="mapping preset: fast (CPU, ~6 min for 50 views; plane edges + lines lifted onto the planes), "
-                        "quick (tests, small scenes), paper (reference settings, plane edges only; hours on a CPU)")
-    p.add_argument("--method", default="lipmap", choices=["lipmap", "lift"])
+    _add_mapping_args(p, method_default="lipmap")
     p.add_argument("--lines", type=Path, default=None, help="2D lines made elsewhere (folder of WireframeGraph JSON / npz, or HDF5)")
     p.add_argument("--plane-depth-tol", type=float, default=None, metavar="METRES",
                    help="lipmap: lines inside a surface follow the input depth where the planes are more than this "
                         "far from it (preset default 0.03, for sensor depth); 0 = on the planes only (noisy or "
                         "predicted depth)")
-    p.add_argument("--pose-source", default="posetxt", choices=["posetxt", "dslam", "sfm"])
-    p.add_argument("--no-registration", action="store_true")
-    p.add_argument("--mapping-step", type=int, default=1)
-    p.add_argument("--skip-bad-frames", action="store_true", help="skip unreadable mapping frames (default: stop with an error)")
-    p.add_argument("--overwrite", action="store_true")
+    _add_pose_args(p)
     p.set_defaults(func=cmd_map)
 
+
+def _add_map_eval_parser(sub):
     p = sub.add_parser("map-eval", help="mapping metrics M1 / M2 of a line map against a mesh or point cloud")
     p.add_argument("--linemap", type=Path, required=True, help="linemap.h5, or a LIMAP folder holding finaltracks/")
     p.add_argument("--gt", type=Path, default=None, help="GT mesh or point cloud (PLY)")
@@ -249,16 +266,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", choices=["7scenes", "synthetic"])
     p.add_argument("--root", type=Path)
     p.add_argument("--scene")
-    p.add_argument("--pose-source", default="posetxt", choices=["posetxt", "dslam", "sfm"])
+    _add_pose_args(p, registration=False)
     p.add_argument("--json", type=Path, default=None)
     p.set_defaults(func=cmd_map_eval)
 
-    for module, name in (("lipmap.datasets.synthetic", "synth"), ("localization.report", "report")):
-        try:
-            mod = __import__(module, fromlist=["_"])
-        except ImportError:
-            continue
-        getattr(mod, f"add_{name}_parser")(sub)
+
+# subcommands whose parsers live beside their library code: (module, name of add_<name>_parser)
+_PLUGGED = (("lipmap.datasets.synthetic", "synth"), ("localization.report", "report"), ("lipmap.linemap", "linemap_export"))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    import importlib
+
+    ap = argparse.ArgumentParser(prog="lipmap-loc", description=__doc__.splitlines()[0])
+    ap.add_argument("-v", "--verbose", action="store_true")
+    sub = ap.add_subparsers(dest="command", required=True)
+    for add in (_add_info_parser, _add_eval_parser, _add_map_parser, _add_map_eval_parser):
+        add(sub)
+    for module, name in _PLUGGED:
+        getattr(importlib.import_module(module), f"add_{name}_parser")(sub)
     return ap
 
 

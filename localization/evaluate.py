@@ -74,7 +74,7 @@ def load_paper_table() -> dict:
     return json.loads(PAPER_TABLE.read_text())
 
 
-def _fmt(s: dict | None) -> str:
+def format_summary(s: dict | None) -> str:
     if not s or s.get("median_t_cm") is None:
         return "failed" if s else "-"
     return f"{s['median_t_cm']:.1f} / {s['median_R_deg']:.2f} / {s['acc_5cm_5deg']:.1f}"
@@ -101,7 +101,7 @@ def summary_markdown(results: dict, dataset: str, pose_source: str, notes: list[
         pcells = [(f"{v[0]:.1f} / {v[1]:.2f} / {v[2]:.1f}" if prow else "n/a") for v in ((prow or {}).get(c, [None] * 3) for c in cols)]
         if not prow:
             pcells = ["n/a"] * len(cols)
-        lines.append(f"| {name} | {n} ({failed}) | {_fmt(pt)} | {_fmt(pl)} | " + " | ".join(pcells) + " |")
+        lines.append(f"| {name} | {n} ({failed}) | {format_summary(pt)} | {format_summary(pl)} | " + " | ".join(pcells) + " |")
     lines.append("")
     lines.append("Paper numbers use the full 7-Scenes test sequences with SuperPoint+SuperGlue (hloc) points; "
                  "n/a: the scene is not in the paper's table (e.g. synthetic or a cut-down scene).")

@@ -29,7 +29,6 @@ from typing import Iterable, Optional
 import h5py
 import numpy as np
 
-from lipmap import logger
 from lipmap.errors import InputError
 from lipmap.imageio import atomic_path, write_text_atomic
 from lipmap.poses import qt_from_T, T_from_qt
@@ -74,7 +73,7 @@ def find_pair(hfile: h5py.File, name0: str, name1: str, path=None) -> tuple[str,
 # ----------------------------------------------------------------------------------------------
 
 
-def _open_h5(path, mode: str = "r") -> h5py.File:
+def open_h5(path, mode: str = "r") -> h5py.File:
     path = Path(path)
     if mode == "r" and not path.exists():
         raise InputError("HDF5 file is missing", path)
@@ -105,7 +104,7 @@ def h5_update(path, fresh: bool = False):
 def list_h5_names(path) -> list[str]:
     """Names of the groups that hold datasets (image names in features.h5), sorted."""
     names = set()
-    with _open_h5(path) as fd:
+    with open_h5(path) as fd:
 
         def visit(_, obj):
             if isinstance(obj, h5py.Dataset):
@@ -146,7 +145,7 @@ def read_keypoints(path, name: str, return_uncertainty: bool = False):
         **keypoints** (N, 2) float64 in COLMAP convention (the file's values + 0.5), and with
         ``return_uncertainty`` also the ``uncertainty`` attribute (float or None).
     """
-    with _open_h5(path) as fd:
+    with open_h5(path) as fd:
         return _read_keypoints(fd, name, path, return_uncertainty)
 
 
@@ -169,7 +168,7 @@ def read_features(path, name: str) -> dict:
     """All of an image's features: keypoints (N, 2) COLMAP convention float64, descriptors (N, D)
     float32 (the file stores D x N), scores (N,) float32 or None, image_size (w, h) or None,
     uncertainty float or None."""
-    with _open_h5(path) as fd:
+    with open_h5(path) as fd:
         kp, unc = _read_keypoints(fd, name, path, return_uncertainty=True)
         grp = fd[name]
         desc = _numeric(_dataset(grp, "descriptors", path, f"image {name!r}")[()], path, f"{name}/descriptors")
@@ -252,11 +251,11 @@ def read_matches(path, name0: str, name1: str) -> tuple[np.ndarray, np.ndarray]:
         **matches** (M, 2) int64 (keypoint index in name0, keypoint index in name1) and
         **scores** (M,) float32 (ones if the file has no ``matching_scores0``).
     """
-    with _open_h5(path) as fd:
-        return _read_matches(fd, name0, name1, path)
+    with open_h5(path) as fd:
+        return read_matches_from(fd, name0, name1, path)
 
 
-def _read_matches(fd, name0, name1, path):
+def read_matches_from(fd, name0, name1, path):
     key, reverse = find_pair(fd, name0, name1, path)
     grp = fd[key]
     m0 = _numeric(_dataset(grp, "matches0", path, f"pair {key!r}")[()], path, f"{key}/matches0", integer=True)
@@ -440,46 +439,3 @@ class ModelIndex:
                 self._xyz[pid] = np.asarray(self.rec.points3D[pid].xyz, dtype=float)
             out[i] = self._xyz[pid]
         return out
-
-
-def point_matches_from_hloc(query: str, sfm_dir, features_h5, matches_h5, pairs, model: Optional[ModelIndex] = None,
-                            pairs_name=None):
-    """2D-3D point matches of one query from hloc's outputs, the way hloc's ``localize_sfm`` builds them.
-
-    Args:
-        query: query image name (a group in ``features_h5``).
-        sfm_dir: COLMAP model of the database images (ignored when ``model`` is given).
-        features_h5, matches_h5: hloc files holding the query's keypoints and query-db matches.
-        pairs: a pairs file path, or a list of (query, db) pairs / db names; those of ``query``
-            are used, in order.
-        model: a :class:`ModelIndex` reused across queries (read from ``sfm_dir`` if None).
-        pairs_name: the file a pairs list was read from, named in error messages.
-
-    Returns:
-        :class:`localization.points.PointMatches` - p2d (N, 2) COLMAP convention, p3d (N, 3),
-        point3D_ids (N,); unpacks as ``p2d, p3d, ids``.
-    """
-    from .points import point_matches_for_query
-
-    if model is None:
-        model = ModelIndex(read_sfm(sfm_dir), sfm_dir)
-    pairs_path = Path(pairs) if isinstance(pairs, (str, Path)) else None
-    pair_list = read_pairs(pairs_path) if pairs_path is not None else [tuple(p) for p in pairs]
-    pairs_path = pairs_path or pairs_name
-    retrieved = pairs_by_query(pair_list).get(query, [])
-    if not Path(features_h5).exists():
-        raise InputError("features file is missing", features_h5)
-    with _open_h5(features_h5) as fd:
-        if query not in fd:
-            raise InputError(
-                f"query {query!r} (from pairs {pairs_path or 'list'}) has no group {query!r} in the features file",
-                features_h5,
-            )
-    for name in retrieved:
-        if name not in model:
-            raise InputError(
-                f"image {name!r} (paired with {query!r}) is not in the SfM model {sfm_dir}", pairs_path or sfm_dir
-            )
-    if not retrieved:
-        logger.warning("no database images paired with query %s", query)
-    return point_matches_for_query(query, retrieved, features_h5, matches_h5, model)

@@ -19,9 +19,12 @@ from lipmap import geometry as geo
 from lipmap.mapping.assign import PlaneRaycaster, best_edges, line_regions, pixel_rays_world, visible_lines
 
 
+LINE_QUERY_METHODS = ("projection", "raycast")
+
+
 @dataclass
 class LineQueryConfig:
-    method: str = "projection"  # projection | raycast
+    method: str = "projection"  # one of LINE_QUERY_METHODS
     max_angle_deg: float = 2.0  # query line vs projected 3D line, with the INITIAL pose
     max_dist_px: float = 4.0  # max distance of the query endpoints to the projected 3D line
     min_overlap: float = 0.3  # overlap of the projected 3D line on the query line (projection method)

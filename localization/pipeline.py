@@ -1,37 +1,42 @@
 """Per-scene localization benchmark: map (if needed), 2D-3D points, point-only pose, line query,
-point+line pose, evaluation. Every step caches its artifact; per-query results go to a journal so an
-interrupted run resumes where it stopped.
+point+line pose, evaluation. Every step caches its artifact, stamped with the settings that made it;
+per-query results go to a journal so an interrupted run resumes where it stopped.
 
     OUT/<dataset>/<scene>/
-        linemap.h5, lines2d.h5, planes.h5 ...   mapping (lipmap.mapping.pipeline)
-        points/                                 SIFT features, pairs, matches, sfm model (built-in)
-        lines2d_query.h5                        2D lines of the queries (same detector)
-        queries-<config digest>.jsonl           per-query journal (resume)
-        results_point.txt, results_point_line.txt   hloc format (name qw qx qy qz tx ty tz)
-        results.json                            per-query errors, inliers, timings; summary
+        map-<method>-<preset>-<digest>/         the line map of one mapping variant (lipmap.mapping.pipeline):
+                                                linemap.h5, lines2d.h5, planes.h5, PLYs, renders
+        points-<preset>-<digest>/               SIFT features, pairs, matches, sfm model (built-in points)
+        lines2d_query-<digest>.h5               2D lines of the queries (the mapping's detector)
+        queries-<digest>.jsonl                  per-query journal of one configuration (resume)
+        results_point.txt, results_point_line.txt   hloc format (name qw qx qy qz tx ty tz), latest run
+        results.json                            per-query errors, inliers, timings; summary; which map
+                                                and points the run used
     OUT/<dataset>/results.json, summary.md      all scenes, paper table beside ours
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 from tqdm import tqdm
 
 from lipmap import InputError, logger
+from lipmap.artifacts import Stamp, digest, scene_key, variant_dir, views_key
 from lipmap.imageio import write_text_atomic
-from lipmap.testing import fault_point
 
 from . import evaluate as ev
 from .estimate import PointLinePoseConf, PointPoseConf, estimate_pose_point_line, estimate_pose_points, subsample_matches
 from .linequery import LineQuery, LineQueryConfig
+
+
+# hloc-format results of each method (name qw qx qy qz tx ty tz, cam_from_world)
+RESULT_FILES = {"point": "results_point.txt", "point+line": "results_point_line.txt"}
 
 
 @dataclass
@@ -46,11 +51,10 @@ class LocalizationConfig:
     line_query: LineQueryConfig = field(default_factory=LineQueryConfig)
     line_iters: int = 2  # line query -> refine, repeated with the refined pose
     mapping: str = "fast"  # lipmap.mapping.pipeline preset
-    map_method: str = "lift"  # measured: fast-preset lipmap maps are too sparse to help localization (see README)
+    map_method: str = "lift"  # the map that helped the pose most when last measured (README, benchmarks/results)
 
     def digest(self) -> str:
-        d = asdict(self)
-        return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:10]
+        return digest(asdict(self), 10)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -59,13 +63,16 @@ class LocalizationConfig:
 class BuiltinPoints:
     """SIFT + known-pose triangulation + VLAD retrieval, all cached under ``out_dir``."""
 
-    def __init__(self, scene, out_dir: Path, conf: LocalizationConfig, overwrite=False):
+    def __init__(self, scene, scene_dir: Path, conf: LocalizationConfig, overwrite=False):
         from . import points as pts
         from .hloc_io import ModelIndex, pairs_by_query, read_pairs, read_sfm
-        from .retrieval import confs as rconfs
+        from .retrieval import get_conf as retrieval_conf
 
-        pconf = pts.confs[conf.points]
-        rconf = replace(rconfs[conf.retrieval], num_retrieved=conf.num_retrieved, seed=conf.seed)
+        pconf = pts.get_conf(conf.points)
+        rconf = replace(retrieval_conf(conf.retrieval), num_retrieved=conf.num_retrieved, seed=conf.seed)
+        self.stamp = Stamp("points", {"points": asdict(pconf), "retrieval": asdict(rconf), "scene": scene_key(scene),
+                                      "queries": views_key(scene.query)})
+        out_dir = self.folder = variant_dir(scene_dir, f"points-{conf.points}", self.stamp)
         t = time.time()
         self.map = pts.build_point_map(scene.mapping, out_dir, pconf, overwrite)
         q = pts.match_queries(scene.query, [v.name for v in scene.mapping], self.map["features"], out_dir, pconf,
@@ -104,9 +111,13 @@ class HlocPoints:
         self.pairs_file = pairs[0]
         self.model = ModelIndex(read_sfm(self.sfm), self.sfm)
         self.timings = {}
+        self.folder = folder
+        # hloc's files are the user's: their paths and sizes stand for their content
+        self.stamp = Stamp("points", {"hloc": [(str(p.resolve()), p.stat().st_size) for p in
+                                               (self.features, self.matches, self.pairs_file, self.sfm / "points3D.bin")]})
 
     def matches_for(self, name: str):
-        from .hloc_io import point_matches_from_hloc
+        from .points import point_matches_from_hloc
 
         return point_matches_from_hloc(name, self.sfm, self.features, self.matches, self.pairs, model=self.model,
                                        pairs_name=self.pairs_file)
@@ -183,43 +194,98 @@ class _Journal:
 
 
 def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, lines_source=None, overwrite=False,
-                   skip_bad_frames: bool = False) -> dict:
+                   skip_bad_frames: bool = False, checkpoint: Optional[Callable[[str], None]] = None) -> dict:
     """Run the whole per-scene pipeline and write the scene's results; returns the scene summary.
+
+    Each variant of an artifact lives where its settings put it: the line map in
+    ``map-<method>-<preset>-<digest>/``, the point map in ``points-<preset>-<digest>/``, the queries' journal
+    in ``queries-<digest>.jsonl`` (the digest covers the settings, the map and the points), so runs with other
+    settings into the same ``out_dir`` never reuse each other's artifacts. The results files describe the
+    latest run and name the map and points they used.
 
     Bad frames are found first (lipmap.datasets.validate): a bad mapping frame stops the run with a
     message naming it unless ``skip_bad_frames``; a bad query is reported as failed and the others run.
+    ``checkpoint(event)`` is called after each artifact ("lines2d", "planes", "linemap", "mapped") and
+    after each query's journal entry ("query"): progress for benchmarks, fault injection for tests.
     """
     from lipmap.datasets.validate import check_scene
-
-    from lipmap.linemap import LineMap
-    from lipmap.lines2d import detect_lines, load_lines
-    from lipmap.mapping.pipeline import get_conf as map_conf
-    from lipmap.mapping.pipeline import map_scene
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if not scene.query:
         raise InputError(f"scene {scene.name} has no query views", scene.root / "TestSplit.txt")
+    checkpoint = checkpoint or (lambda event: None)
     all_queries = list(scene.query)
     scene, bad_queries = check_scene(scene, skip_bad_frames)
     t0 = time.time()
-    mconf = replace(map_conf(conf.mapping), seed=conf.seed)
-    linemap_path = map_scene(scene, out_dir, mconf, conf.map_method, lines_source, overwrite)
+    linemap, map_info = _map(scene, out_dir, conf, lines_source, overwrite, checkpoint)
     t_map = time.time() - t0
-    fault_point("mapped")
-    linemap = LineMap.load(linemap_path)
-    lq = LineQuery.from_linemap(linemap)
+    checkpoint("mapped")
+    lq = _line_query(linemap, conf, map_info)
+    points = HlocPoints(Path(hloc_dir) / scene.name) if hloc_dir else BuiltinPoints(scene, out_dir, conf, overwrite)
+    qlines_h5 = _query_lines(scene, out_dir, conf, overwrite)
+    journal_path = out_dir / f"queries-{_journal_digest(scene, conf, map_info, points, qlines_h5)}.jsonl"
+    done = _resume(journal_path, scene, bad_queries, overwrite)
+    _localize_all(scene, points, qlines_h5, lq, conf, journal_path, done, checkpoint)
+    gt = {v.name: v.cam_from_world for v in all_queries}
+    skipped = {v.name: v.meta["gt_error"] for v in all_queries if v.meta.get("gt_error")}
+    sources = {"map": map_info, "points": {"folder": _rel(points.folder, out_dir), "digest": points.stamp.digest},
+               "journal": journal_path.name}
+    return write_scene_results(scene, out_dir, done, conf, linemap, {"map_s": t_map, **points.timings}, gt, skipped,
+                               sources)
+
+
+def _rel(path: Path, base: Path) -> str:
+    try:
+        return Path(path).resolve().relative_to(Path(base).resolve()).as_posix()
+    except ValueError:
+        return str(path)
+
+
+def _map(scene, out_dir: Path, conf: LocalizationConfig, lines_source, overwrite, checkpoint):
+    """The line map of this configuration, built or reused in its own variant folder."""
+    from lipmap.linemap import LineMap
+    from lipmap.mapping.pipeline import get_conf as map_conf
+    from lipmap.mapping.pipeline import map_scene, map_variant_dir, mapping_stamp
+
+    mconf = replace(map_conf(conf.mapping), seed=conf.seed)
+    map_dir = map_variant_dir(out_dir, scene, mconf, conf.map_method, lines_source)
+    path = map_scene(scene, map_dir, mconf, conf.map_method, lines_source, overwrite, checkpoint=checkpoint)
+    linemap = LineMap.load(path)
+    info = {"method": conf.map_method, "preset": mconf.preset, "path": _rel(path, out_dir), "n_lines": len(linemap),
+            "digest": mapping_stamp(scene, mconf, conf.map_method, lines_source).digest}
     if not len(linemap):
-        logger.warning("%s: the line map has no lines; point+line poses will be the point-only poses", linemap_path)
+        logger.warning("%s: the line map has no lines; point+line poses will be the point-only poses", path)
+    return linemap, info
+
+
+def _line_query(linemap, conf: LocalizationConfig, map_info: dict) -> LineQuery:
+    lq = LineQuery.from_linemap(linemap)
     if conf.line_query.method == "raycast" and len(linemap) and (lq.caster is None or lq.edge_line is None):
         # otherwise every query fails alone with the same ValueError
         raise InputError(f"the raycast line query needs a line map with planes; this one was made by "
-                         f"{linemap.metadata.get('method', '?')!r} and has none", linemap_path,
+                         f"{linemap.metadata.get('method', '?')!r} and has none", map_info["path"],
                          "use --line-query projection or --method lipmap")
-    points = HlocPoints(Path(hloc_dir) / scene.name) if hloc_dir else BuiltinPoints(scene, out_dir / "points", conf, overwrite)
-    qlines_h5 = detect_lines(scene.query, out_dir / "lines2d_query.h5", mconf.lines, overwrite=overwrite)
+    return lq
 
-    journal_path = out_dir / f"queries-{conf.digest()}.jsonl"
+
+def _query_lines(scene, out_dir: Path, conf: LocalizationConfig, overwrite) -> Path:
+    """2D lines of the queries, with the mapping's detector, in a file named by the detector's settings."""
+    from lipmap.lines2d import detect_lines, get_conf as lines_conf, lines_stamp
+    from lipmap.mapping.pipeline import get_conf as map_conf
+
+    lconf = lines_conf(map_conf(conf.mapping).lines)
+    stamp = lines_stamp(lconf.name, asdict(lconf))
+    return detect_lines(scene.query, out_dir / f"lines2d_query-{stamp.digest[:8]}.h5", lconf, overwrite=overwrite)
+
+
+def _journal_digest(scene, conf: LocalizationConfig, map_info: dict, points, qlines_h5: Path) -> str:
+    return digest({"conf": asdict(conf), "map": map_info["digest"], "points": points.stamp.digest,
+                   "query_lines": qlines_h5.name, "queries": views_key(scene.query)}, 10)
+
+
+def _resume(journal_path: Path, scene, bad_queries: dict, overwrite: bool) -> dict:
+    """Queries already localized by this configuration (from its journal), plus the bad ones as failures."""
     if overwrite and journal_path.exists():
         journal_path.unlink()
     done = _read_journal(journal_path)
@@ -227,6 +293,14 @@ def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, line
         logger.info("Resuming %s: %d of %d queries already localized (%s).", scene.name, len(done), len(scene.query), journal_path.name)
     for name, problem in bad_queries.items():
         done[name] = {"name": name, "point": {"success": False}, "point+line": {"success": False}, "error": problem}
+    return done
+
+
+def _localize_all(scene, points, qlines_h5: Path, lq: LineQuery, conf: LocalizationConfig, journal_path: Path,
+                  done: dict, checkpoint) -> None:
+    """Localize every query not in ``done``, journaling each one; a failing query never stops the others."""
+    from lipmap.lines2d import load_lines
+
     journal = _Journal(journal_path)
     try:
         for v in tqdm(scene.query, desc=f"localize {scene.name}"):
@@ -244,21 +318,18 @@ def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, line
                 rec = {"name": v.name, "point": {"success": False}, "point+line": {"success": False}, "error": repr(e)}
             journal.write(rec)
             done[v.name] = rec
-            fault_point("query")
+            checkpoint("query")
     finally:
         journal.close()
-    gt = {v.name: v.cam_from_world for v in all_queries}
-    skipped = {v.name: v.meta["gt_error"] for v in all_queries if v.meta.get("gt_error")}
-    return write_scene_results(scene, out_dir, done, conf, linemap, {"map_s": t_map, **points.timings}, gt, skipped)
 
 
 def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConfig, linemap, timings, gt=None,
-                        skipped=None) -> dict:
+                        skipped=None, sources: Optional[dict] = None) -> dict:
     from .hloc_io import write_results
 
     gt = scene.query_gt if gt is None else gt
     summary, per_query = {}, {}
-    for key, fname in (("point", "results_point.txt"), ("point+line", "results_point_line.txt")):
+    for key, fname in RESULT_FILES.items():
         est = {n: (np.array(r[key]["cam_from_world"]) if r[key].get("success") else None) for n, r in recs.items()}
         write_results(out_dir / fname, {n: T for n, T in est.items() if T is not None})
         errs = ev.query_errors(est, gt)
@@ -276,6 +347,7 @@ def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConf
         "dataset": scene.dataset,
         "pose_source": scene.pose_source,
         "n_map_lines": len(linemap),
+        **(sources or {}),
         "config": json.loads(json.dumps(asdict(conf), default=str)),
         "timings": timings,
         "summary": summary,
@@ -289,23 +361,24 @@ def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConf
 
 
 def run_eval(dataset: str, root, scenes, out, conf: LocalizationConfig, hloc_dir=None, pose_source="posetxt",
-             register_depth=True, overwrite=False, mapping_step: int = 1, skip_bad_frames: bool = False) -> Path:
+             register_depth=True, overwrite=False, mapping_step: int = 1, skip_bad_frames: bool = False,
+             checkpoint: Optional[Callable[[str], None]] = None) -> Path:
     """Localize every scene and write OUT/<dataset>/results.json and summary.md; returns the results path."""
     from lipmap.datasets import load_scene
 
     out = Path(out) / dataset
     all_res = {"dataset": dataset, "root": str(Path(root).resolve()), "pose_source": pose_source, "config": json.loads(json.dumps(asdict(conf), default=str)),
                "scenes": {}, "scene_details": {}}
-    failed_scenes = {}
     for name in scenes:
         scene = load_scene(dataset, root, name, pose_source=pose_source, register_depth=register_depth,
                            mapping_step=mapping_step, skip_bad_frames=skip_bad_frames)
         logger.info("Scene %s: %d mapping, %d query views (poses: %s).", name, len(scene.mapping), len(scene.query), pose_source)
-        res = localize_scene(scene, out / name, conf, hloc_dir, overwrite=overwrite, skip_bad_frames=skip_bad_frames)
+        res = localize_scene(scene, out / name, conf, hloc_dir, overwrite=overwrite, skip_bad_frames=skip_bad_frames,
+                             checkpoint=checkpoint)
         all_res["scenes"][name] = res["summary"]
-        all_res["scene_details"][name] = {"n_map_lines": res["n_map_lines"], "timings": res["timings"]}
+        all_res["scene_details"][name] = {"n_map_lines": res["n_map_lines"], "map": res["map"], "timings": res["timings"]}
         s = res["summary"]
-        logger.info("%s point-only: %s | point+line: %s", name, ev._fmt(s["point"]), ev._fmt(s["point+line"]))
+        logger.info("%s point-only: %s | point+line: %s", name, ev.format_summary(s["point"]), ev.format_summary(s["point+line"]))
     path = out / "results.json"
     write_text_atomic(path, json.dumps(all_res, indent=1, default=float))
     notes = [f"Mapping: {conf.map_method} ({conf.mapping} preset); points: "

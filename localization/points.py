@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Iterable, Optional, Sequence
 
@@ -26,7 +26,9 @@ import numpy as np
 from tqdm import tqdm
 
 from lipmap import logger
+from lipmap.artifacts import STAMP_ATTR, Stamp, reuse, views_key, write_stamp
 from lipmap.errors import InputError
+from lipmap.presets import resolve
 
 from . import hloc_io
 from .hloc_io import ModelIndex, h5_update, list_h5_names
@@ -108,6 +110,11 @@ confs = {
 }
 
 
+def get_conf(conf=None) -> PointsConf:
+    """A :class:`PointsConf` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
+    return resolve(conf, confs, "point pipeline", default="sift-n4096")
+
+
 # ----------------------------------------------------------------------------------------------
 # SIFT extraction
 # ----------------------------------------------------------------------------------------------
@@ -183,7 +190,9 @@ def extract_sift(views: Sequence, out_h5, conf: Optional[SiftConf] = None, overw
     """
     conf = conf or SiftConf()
     out_h5 = Path(out_h5)
-    done = set() if overwrite or not out_h5.exists() else set(list_h5_names(out_h5))
+    stamp = Stamp("features", {"sift": asdict(conf)})
+    fresh = not reuse(out_h5, stamp, overwrite, "SIFT features")
+    done = set() if fresh else set(list_h5_names(out_h5))
     todo = [v for v in views if v.name not in done]
     if len(todo) < len(views):
         logger.info("Skipping %d images already in %s.", len(views) - len(todo), out_h5.name)
@@ -191,9 +200,9 @@ def extract_sift(views: Sequence, out_h5, conf: Optional[SiftConf] = None, overw
         return out_h5
     logger.info("Extracting SIFT (%s) for %d images.", conf.name, len(todo))
     extractor = _sift_extractor(conf)
-    fresh = overwrite
     for start in tqdm(range(0, len(todo), chunk), desc="sift", unit=f"x{chunk}img", disable=len(todo) <= chunk):
         with h5_update(out_h5, fresh=fresh) as fd:
+            fd.attrs[STAMP_ATTR] = stamp.to_json()
             for v in todo[start : start + chunk]:
                 gray = v.load_color(gray=True)
                 f = sift_features(gray, conf, extractor)
@@ -349,8 +358,10 @@ def match_features(pairs, features_h5, out_h5, conf: Optional[MatchConf] = None,
     pairs = hloc_io.read_pairs(pairs_path) if pairs_path is not None else [tuple(p) for p in pairs]
     hloc_io.check_pairs_in_features(pairs, features_h5, pairs_path)
     out_h5 = Path(out_h5)
+    stamp = Stamp("matches", {"match": asdict(conf)})
+    fresh = not reuse(out_h5, stamp, overwrite, "matches")
     seen, todo = set(), []
-    existing = None if overwrite or not out_h5.exists() else h5py.File(str(out_h5), "r")
+    existing = None if fresh else h5py.File(str(out_h5), "r")
     try:
         for a, b in pairs:
             if (a, b) in seen or (b, a) in seen or a == b:
@@ -368,9 +379,9 @@ def match_features(pairs, features_h5, out_h5, conf: Optional[MatchConf] = None,
         return out_h5
     logger.info("Matching %d pairs (%s).", len(todo), conf.name)
     desc = _DescriptorCache(features_h5)
-    fresh = overwrite
     for start in tqdm(range(0, len(todo), chunk), desc="match", unit=f"x{chunk}pairs", disable=len(todo) <= chunk):
         with h5_update(out_h5, fresh=fresh) as fd:
+            fd.attrs[STAMP_ATTR] = stamp.to_json()
             for a, b in todo[start : start + chunk]:
                 m0, s0 = mutual_nn_ratio(desc(a), desc(b), conf)
                 hloc_io.write_matches(fd, a, b, m0, s0)
@@ -527,9 +538,9 @@ def _reconstruction_and_database(mapping_views, features_h5, pairs, matches_h5, 
             db.write_keypoints(image_id, kps[v.name].astype(np.float32))
 
         n_raw = n_ver = n_pairs = 0
-        with hloc_io._open_h5(matches_h5) as mfd:
+        with hloc_io.open_h5(matches_h5) as mfd:
             for a, b in tqdm(pairs, desc="verify", disable=len(pairs) < 500):
-                matches, _ = hloc_io._read_matches(mfd, a, b, matches_h5)
+                matches, _ = hloc_io.read_matches_from(mfd, a, b, matches_h5)
                 if len(matches) and (matches[:, 0].max() >= len(kps[a]) or matches[:, 1].max() >= len(kps[b])):
                     raise InputError(f"matches of ({a}, {b}) index beyond the keypoints in {features_h5}", matches_h5)
                 va, vb = by_name[a], by_name[b]
@@ -622,10 +633,10 @@ def point_matches_for_query(query_name: str, retrieved: Iterable[str], features_
         model = ModelIndex(reconstruction)
     kpq = hloc_io.read_keypoints(features_h5, query_name)
     rows = []
-    with hloc_io._open_h5(matches_h5) as mfd:
+    with hloc_io.open_h5(matches_h5) as mfd:
         for db_name in dict.fromkeys(retrieved):  # unique, order kept
             ids = model.point3D_ids(db_name)
-            m, _ = hloc_io._read_matches(mfd, query_name, db_name, matches_h5)
+            m, _ = hloc_io.read_matches_from(mfd, query_name, db_name, matches_h5)
             if len(m) == 0:
                 continue
             if m[:, 0].max() >= len(kpq) or m[:, 1].max() >= len(ids):
@@ -644,6 +655,47 @@ def point_matches_for_query(query_name: str, retrieved: Iterable[str], features_
     return PointMatches(
         p2d=kpq[rows[:, 0]], p3d=model.xyz(rows[:, 1]), point3D_ids=rows[:, 1].astype(np.int64), keypoint_idx=rows[:, 0]
     )
+
+
+def point_matches_from_hloc(query: str, sfm_dir, features_h5, matches_h5, pairs, model: Optional[ModelIndex] = None,
+                            pairs_name=None):
+    """2D-3D point matches of one query from hloc's outputs, the way hloc's ``localize_sfm`` builds them.
+
+    Args:
+        query: query image name (a group in ``features_h5``).
+        sfm_dir: COLMAP model of the database images (ignored when ``model`` is given).
+        features_h5, matches_h5: hloc files holding the query's keypoints and query-db matches.
+        pairs: a pairs file path, or a list of (query, db) pairs / db names; those of ``query``
+            are used, in order.
+        model: a :class:`ModelIndex` reused across queries (read from ``sfm_dir`` if None).
+        pairs_name: the file a pairs list was read from, named in error messages.
+
+    Returns:
+        :class:`PointMatches` - p2d (N, 2) COLMAP convention, p3d (N, 3),
+        point3D_ids (N,); unpacks as ``p2d, p3d, ids``.
+    """
+    if model is None:
+        model = ModelIndex(hloc_io.read_sfm(sfm_dir), sfm_dir)
+    pairs_path = Path(pairs) if isinstance(pairs, (str, Path)) else None
+    pair_list = hloc_io.read_pairs(pairs_path) if pairs_path is not None else [tuple(p) for p in pairs]
+    pairs_path = pairs_path or pairs_name
+    retrieved = hloc_io.pairs_by_query(pair_list).get(query, [])
+    if not Path(features_h5).exists():
+        raise InputError("features file is missing", features_h5)
+    with hloc_io.open_h5(features_h5) as fd:
+        if query not in fd:
+            raise InputError(
+                f"query {query!r} (from pairs {pairs_path or 'list'}) has no group {query!r} in the features file",
+                features_h5,
+            )
+    for name in retrieved:
+        if name not in model:
+            raise InputError(
+                f"image {name!r} (paired with {query!r}) is not in the SfM model {sfm_dir}", pairs_path or sfm_dir
+            )
+    if not retrieved:
+        logger.warning("no database images paired with query %s", query)
+    return point_matches_for_query(query, retrieved, features_h5, matches_h5, model)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -670,14 +722,20 @@ def build_point_map(mapping_views: Sequence, out_dir, conf: Optional[PointsConf]
     extract_sift(mapping_views, features, conf.sift, overwrite)
     timings["extract"] = time.time() - t
     t = time.time()
-    if overwrite or not pairs.exists():
+    pairs_stamp = Stamp("pairs-covisible", {"pairs": asdict(conf.pairs), "views": views_key(mapping_views)})
+    if not reuse(pairs, pairs_stamp, overwrite, "covisible pairs", replace_stale=True):
         pairs_from_poses(mapping_views, pairs, conf.pairs)
+        write_stamp(pairs, pairs_stamp)
     timings["pairs"] = time.time() - t
     t = time.time()
     match_features(pairs, features, matches, conf.match, overwrite)
     timings["match"] = time.time() - t
     t = time.time()
-    triangulate_map(mapping_views, features, pairs, matches, sfm, conf.triangulation, overwrite)
+    sfm_stamp = Stamp("sfm", {"triangulation": asdict(conf.triangulation), "sift": asdict(conf.sift),
+                              "match": asdict(conf.match), "pairs": pairs_stamp.digest, "views": views_key(mapping_views)})
+    if not reuse(sfm, sfm_stamp, overwrite, "triangulation", replace_stale=True):
+        triangulate_map(mapping_views, features, pairs, matches, sfm, conf.triangulation, overwrite=True)
+        write_stamp(sfm, sfm_stamp)
     timings["triangulate"] = time.time() - t
     return {"features": features, "pairs": pairs, "matches": matches, "sfm": sfm, "timings": timings}
 
@@ -744,6 +802,7 @@ __all__ = [
     "model_stats",
     "PointMatches",
     "point_matches_for_query",
+    "point_matches_from_hloc",
     "build_point_map",
     "match_queries",
 ]

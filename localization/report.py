@@ -17,7 +17,6 @@ OUT/synthetic-data. Without a dataset root the image-based figures are skipped (
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import re
@@ -56,6 +55,11 @@ class SceneRun:
     def queries(self) -> dict:
         return self.results.get("queries", {})
 
+    @property
+    def map_path(self) -> Path:
+        """The ``linemap.h5`` this run localized with (named in results.json)."""
+        return self.folder / self.results.get("map", {}).get("path", "linemap.h5")
+
     def errors(self, key: str) -> tuple[np.ndarray, np.ndarray]:
         """Translation (cm) and rotation (deg) errors of every evaluated query; inf = failed."""
         t = [_num(q.get(key, {}).get("t_cm")) for q in self.queries.values()]
@@ -71,17 +75,10 @@ def _num(x) -> float:
     return math.inf if x is None else float(x)
 
 
-def config_digest(config: dict) -> str:
-    """The journal digest of a run's config as stored in results.json (LocalizationConfig.digest)."""
-    return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:10]
-
-
 def find_journal(folder: Path, results: dict) -> Optional[Path]:
-    """The journal that produced ``results``: queries-<digest of its config>.jsonl, else the newest."""
-    if "config" in results:
-        p = folder / f"queries-{config_digest(results['config'])}.jsonl"
-        if p.exists():
-            return p
+    """The journal that produced ``results`` (named in it), else the newest."""
+    if results.get("journal") and (folder / results["journal"]).exists():
+        return folder / results["journal"]
     found = sorted(folder.glob("queries-*.jsonl"), key=lambda p: p.stat().st_mtime)
     if found:
         logger.warning("No journal matches the config in %s; using the newest, %s.", folder / "results.json", found[-1].name)
@@ -415,8 +412,8 @@ def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples:
         prow = paper["scenes"].get(n.lower())
         pcell = "n/a (not in the paper)" if prow is None else "{:.1f} / {:.2f} / {:.1f}".format(*prow["LiP-Map (point+line)"])
         method = (r.results.get("config") or {}).get("map_method", "?")
-        md.append(f"| {n} | {n_q[n]} | {r.results.get('n_map_lines', '?')} lines ({method}) | {ev._fmt(s.get('point'))} "
-                  f"| {ev._fmt(s.get('point+line'))} | {pcell} |")
+        md.append(f"| {n} | {n_q[n]} | {r.results.get('n_map_lines', '?')} lines ({method}) | {ev.format_summary(s.get('point'))} "
+                  f"| {ev.format_summary(s.get('point+line'))} | {pcell} |")
     md += ["", "Cells: median translation (cm) / median rotation (deg) / % within 5 cm and 5°.", ""]
 
     # accuracy bars

@@ -9,7 +9,7 @@ cosine similarity and the result is written as an hloc pairs file. A user-suppli
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -17,7 +17,9 @@ import numpy as np
 from tqdm import tqdm
 
 from lipmap import logger
+from lipmap.artifacts import Stamp, reuse, write_stamp
 from lipmap.errors import InputError
+from lipmap.presets import resolve
 from lipmap.imageio import atomic_path
 
 from . import hloc_io
@@ -46,6 +48,11 @@ confs = {
     "vlad64": RetrievalConf(),
     "bow1024": RetrievalConf(method="bow", num_words=1024),
 }
+
+
+def get_conf(conf=None) -> RetrievalConf:
+    """A :class:`RetrievalConf` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
+    return resolve(conf, confs, "retrieval", default="vlad64")
 
 
 def _descriptors(features_h5, name: str) -> np.ndarray:
@@ -158,7 +165,7 @@ def extract_global(features_h5, names: Sequence[str], out_h5, codebook: dict, co
 
 def read_global(path, names: Sequence[str]) -> np.ndarray:
     """(len(names), G) global descriptors from an hloc global-features file (ours or NetVLAD's)."""
-    with hloc_io._open_h5(path) as fd:
+    with hloc_io.open_h5(path) as fd:
         out = []
         for n in names:
             if n not in fd or "global_descriptor" not in fd[n]:
@@ -190,12 +197,10 @@ def pairs_from_retrieval(
     """
     conf = conf or RetrievalConf()
     out_pairs = Path(out_pairs)
-    if out_pairs.exists() and not overwrite:
-        have = hloc_io.pairs_by_query(hloc_io.read_pairs(out_pairs))
-        if set(have) == set(query_names) and {r for rs in have.values() for r in rs} <= set(db_names):
-            logger.info("Skipping retrieval: %s exists.", out_pairs)
-            return out_pairs
-        logger.info("%s was made for other images: retrieving again.", out_pairs.name)
+    stamp = Stamp("pairs-retrieval", {"retrieval": asdict(conf), "features": Path(features_h5).name,
+                                      "queries": _names_digest(query_names), "db": _names_digest(db_names)})
+    if reuse(out_pairs, stamp, overwrite, "retrieval", replace_stale=True):
+        return out_pairs
     if not db_names:
         raise InputError("retrieval needs at least one database image", features_h5)
     hloc_io.check_pairs_in_features([(q, q) for q in query_names] + [(d, d) for d in db_names], features_h5)
@@ -210,6 +215,7 @@ def pairs_from_retrieval(
     idx = top_k(qd, dd, conf.num_retrieved)
     pairs = [(q, db_names[j]) for q, row in zip(query_names, idx) for j in row]
     hloc_io.write_pairs(out_pairs, pairs)
+    write_stamp(out_pairs, stamp)
     logger.info("Retrieved %d database images for each of %d queries.", idx.shape[1], len(query_names))
     return out_pairs
 

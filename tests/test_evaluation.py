@@ -12,7 +12,6 @@ from lipmap.evaluation import (
     evaluate_linemap,
     gt_from_depth,
     load_ground_truth,
-    m1_metrics,
     m2_metrics,
     main,
     voxel_downsample,

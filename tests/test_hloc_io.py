@@ -9,13 +9,13 @@ import pytest
 from lipmap.errors import InputError
 from lipmap.poses import T_from_qt, pose_errors
 from localization import hloc_io
+from localization.points import point_matches_from_hloc
 from localization.hloc_io import (
     ModelIndex,
     check_pairs_in_features,
     find_pair,
     names_to_pair,
     names_to_pair_old,
-    point_matches_from_hloc,
     read_features,
     read_keypoints,
     read_matches,

@@ -4,11 +4,9 @@ import pytest
 import torch
 
 from lipmap import geometry as geo
-from lipmap.mapping.assign import PlaneRaycaster, assign_lines, best_edges, corner_edges, line_regions
+from lipmap.mapping.assign import PlaneRaycaster, assign_lines, corner_edges, line_regions
 from lipmap.mapping.extract import ExtractConfig, build_tracks, depth_residuals, extract_observations, merge_edges
-from lipmap.mapping.losses import assigned_edges, group_loss, line_loss, robust_px
-from lipmap.poses import make_T
-from lipmap.scene import Camera, View
+from lipmap.mapping.losses import group_loss, line_loss, robust_px
 from scipy.spatial.transform import Rotation
 
 from lipmap.testing import SMALL_CAMERA as CAM, raycast_depth, rect, wall_scene

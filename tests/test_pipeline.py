@@ -6,12 +6,12 @@ import subprocess
 import sys
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
 
 from lipmap import InputError
 from lipmap.datasets.synthetic import SynthConfig, generate_scene
+from dataclasses import replace
+
 from localization.pipeline import LocalizationConfig, run_eval
 
 MINI = SynthConfig("mini", 240, 180, 196.875, 196.875, 120.0, 90.0, n_mapping=16, n_query=6, texels_per_m=200.0)
@@ -91,8 +91,13 @@ def test_sigkill_during_localization_then_resume_gives_same_results(mini_root, t
             "--points", "sift-n2048"]
     ref = _cli(args + ["--out", str(tmp_path / "ref")])
     assert ref.returncode == 0, ref.stderr[-2000:]
-    killed = _cli(args + ["--out", str(tmp_path / "run")], env={"LIPMAP_FAULT": "query:3"})
-    assert killed.returncode == -9  # SIGKILL after the third query was journaled
+    # the run the CLI would make, killed by its checkpoint callback right after the third query was journaled
+    script = ("import sys; from lipmap.testing import kill_at; from localization.pipeline import LocalizationConfig, run_eval; "
+              "run_eval('synthetic', sys.argv[1], ['room-s1'], sys.argv[2], "
+              "LocalizationConfig(map_method='lift', points='sift-n2048'), checkpoint=kill_at('query', 3))")
+    killed = subprocess.run([sys.executable, "-c", script, str(mini_root), str(tmp_path / "run")], capture_output=True,
+                            text=True, timeout=600)
+    assert killed.returncode == -9, killed.stderr[-2000:]
     journal = next((tmp_path / "run" / "synthetic" / "room-s1").glob("queries-*.jsonl"))
     assert len(journal.read_text().splitlines()) == 3
     assert not (tmp_path / "run" / "synthetic" / "results.json").exists()
@@ -120,3 +125,47 @@ def test_same_seed_same_numbers(mini_root, tmp_path):
     a = json.loads(run_eval("synthetic", mini_root, ["room-s1"], tmp_path / "a", CONF).read_text())
     b = json.loads(run_eval("synthetic", mini_root, ["room-s1"], tmp_path / "b", CONF).read_text())
     assert _numbers(a) == _numbers(b)
+
+
+def _map_used(out: Path, scene: str = "room-s1"):
+    """The line map a run localized with, as its results.json names it, and those results."""
+    from lipmap.linemap import LineMap
+
+    res = json.loads((out / "synthetic" / scene / "results.json").read_text())
+    return LineMap.load(out / "synthetic" / scene / res.get("map", {}).get("path", "linemap.h5")), res
+
+
+def test_eval_with_another_map_method_into_the_same_out_uses_that_map(mini_root, tmp_path):
+    """eval with lift, then with lipmap into one OUT: the second run must localize with (and report) a lipmap
+    map built for it, not reuse the lift map; both variants stay on disk."""
+    out = tmp_path / "out"
+    run_eval("synthetic", mini_root, ["room-s1"], out, CONF)
+    lift_map, lift_res = _map_used(out)
+    run_eval("synthetic", mini_root, ["room-s1"], out, replace(CONF, map_method="lipmap", mapping="quick"))
+    lm, res = _map_used(out)
+    assert lm.metadata["method"] == "lipmap" and lm.planes is not None
+    assert res["config"]["map_method"] == "lipmap" and res["map"]["method"] == "lipmap"
+    assert res["n_map_lines"] == len(lm) and res["map"]["path"] != lift_res["map"]["path"]
+    assert len(list((out / "synthetic" / "room-s1").glob("map-*/linemap.h5"))) == 2
+    assert len(list((out / "synthetic" / "room-s1").glob("queries-*.jsonl"))) == 2
+    # the lift run again: its map and journal are reused, its numbers unchanged
+    again = json.loads(run_eval("synthetic", mini_root, ["room-s1"], out, CONF).read_text())
+    assert _map_used(out)[1]["map"] == lift_res["map"] and len(_map_used(out)[0]) == len(lift_map)
+    assert _numbers(again) == _numbers(json.loads(json.dumps({"scenes": {"room-s1": lift_res["summary"]}})))
+
+
+def test_map_into_a_folder_made_with_other_settings_stops_naming_both(mini_root, tmp_path):
+    from lipmap.artifacts import StaleArtifactError
+    from lipmap.datasets import load_scene
+    from lipmap.mapping.pipeline import map_scene
+
+    scene = load_scene("synthetic", mini_root, "room-s1")
+    path = map_scene(scene, tmp_path / "m", "quick", "lift")
+    mtime = path.stat().st_mtime_ns
+    assert map_scene(scene, tmp_path / "m", "quick", "lift") == path and path.stat().st_mtime_ns == mtime  # reused
+    with pytest.raises(StaleArtifactError, match=r"linemap\.h5: was made by linemap with other settings .*"
+                                                 r"method: 'lift' -> 'lipmap'.*--overwrite"):
+        map_scene(scene, tmp_path / "m", "quick", "lipmap")
+    with pytest.raises(StaleArtifactError, match=r"lift\.merge_max_angle: 0\.03 -> 0\.01"):
+        map_scene(scene, tmp_path / "m", {"preset": "quick", "lift": "lift-merge"}, "lift")
+    assert path.stat().st_mtime_ns == mtime  # nothing was touched

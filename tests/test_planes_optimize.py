@@ -56,7 +56,7 @@ class TestOptimize:
     def test_extra_loss_hook_and_restructure_callback(self):
         calls, maps = [], []
 
-        def extra(view, planes, iteration, render=None):
+        def extra(view, planes, iteration, render):
             calls.append((iteration, render is not None, planes.center.requires_grad))
             return 0.0 * planes.center.sum()
 
@@ -65,10 +65,11 @@ class TestOptimize:
         assert all(c[1] and c[2] for c in calls)
         assert len(maps) == 3 and all(isinstance(m, PlaneIndexMap) for m in maps)
 
-        def extra3(view, planes, iteration):  # the render argument is optional
+        def extra3(view, planes, iteration):  # one fixed signature: a callback without ``render`` is refused
             return planes.radii.sum() * 0
 
-        optimize_planes(wall_targets(1), noisy_wall_planes(), small_conf(epochs=1), extra_loss=extra3)
+        with pytest.raises(TypeError):
+            optimize_planes(wall_targets(1), noisy_wall_planes(), small_conf(epochs=1), extra_loss=extra3)
 
 
 class TestPruneSplit:

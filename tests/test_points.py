@@ -24,6 +24,7 @@ from localization.points import (
     mutual_nn_ratio,
     pairs_from_poses,
     point_matches_for_query,
+    point_matches_from_hloc,
     sampson_distance,
     triangulate_map,
 )
@@ -290,7 +291,7 @@ def _localize(scene_mapping, scene_query, out, conf, retrieval_conf=None):
     rows = []
     for v in scene_query:
         t0 = time.time()
-        pm = hloc_io.point_matches_from_hloc(v.name, None, built["features"], q["matches"], q["pairs"], model=model)
+        pm = point_matches_from_hloc(v.name, None, built["features"], q["matches"], q["pairs"], model=model)
         t1 = time.time()
         r = estimate_pose_points(pm.p2d, pm.p3d, v.camera)
         t2 = time.time()

@@ -76,6 +76,7 @@ def fake_run(tmp_path):
     queries = {q: {k: {"t_cm": errs[q][k], "R_deg": 0.1, "success": True, "n_inliers": 50, "n_matches": 60,
                        "n_line_inliers": 7, "n_line_matches": 9} for k in rp.KEYS} for q in (Q0, Q1)}
     res = {"scene": "chess", "dataset": "7scenes", "pose_source": "posetxt", "n_map_lines": 4, "config": config,
+           "journal": f"queries-{conf.digest()}.jsonl", "map": {"path": "linemap.h5", "method": "lipmap"},
            "summary": _summary(50.0, 100.0), "queries": queries, "errors": {}}
     (chess / "results.json").write_text(json.dumps(res))
     roomx = ds / "room-x"
@@ -89,7 +90,7 @@ def fake_run(tmp_path):
     return {"root": root, "out": out, "est": est}
 
 
-def test_journal_digest_matches_pipeline(fake_run):
+def test_journal_named_in_results(fake_run):
     run = rp.load_scene_run(fake_run["out"] / "7scenes" / "chess")
     assert run.journal.name == f"queries-{LocalizationConfig().digest()}.jsonl"
     np.testing.assert_allclose(run.poses[Q0]["point+line"], fake_run["est"][Q0]["point+line"])

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from lipmap import InputError, logger
+from lipmap.artifacts import read_stamp
 from lipmap.datasets import load_scene
 from lipmap.datasets.synthetic import generate_scene
 from lipmap.datasets.validate import check_scene
@@ -174,7 +175,7 @@ def test_cli_bad_mapping_input_stops_with_one_line(mini_root, tmp_path, case):
     msg = _one_line_error(p)
     path = re.escape(str(root / SCENE / rel))
     assert re.fullmatch("lipmap-loc: error: " + problem.format(path=path), msg), msg
-    assert not (tmp_path / "out" / "synthetic" / SCENE / "linemap.h5").exists()  # found before any work
+    assert not list((tmp_path / "out" / "synthetic" / SCENE).glob("map-*/linemap.h5"))  # found before any work
 
 
 def test_skip_bad_frames_skips_each_with_a_warning(mini_root, tmp_path, caplog):
@@ -218,7 +219,8 @@ def test_bad_queries_fail_alone(mini_root, ref, tmp_path):
     uniform = res["queries"][Q(1)]
     assert uniform["point"]["success"] is False and uniform["point"]["reason"] == "0 matches < 4"
     assert uniform["point+line"]["reason"] == "no point-only pose to start from"
-    assert load_lines(out / "synthetic" / SCENE / "lines2d_query.h5", Q(1)).shape == (0, 4)
+    (qlines,) = (out / "synthetic" / SCENE).glob("lines2d_query-*.h5")
+    assert load_lines(qlines, Q(1)).shape == (0, 4)
     s = res["summary"]["point"]
     assert s["n_queries"] == 5 and s["n_failed"] == 2
     for i in (0, 2, 5):  # untouched queries: the very numbers of the intact run
@@ -233,7 +235,8 @@ def test_uniform_image_has_no_lines():
 
 def test_query_without_lines_keeps_its_point_pose(mini_root, ref, tmp_path):
     out = _copy_out(ref, tmp_path)
-    with h5py.File(out / "synthetic" / SCENE / "lines2d_query.h5", "a") as f:
+    (qlines,) = (out / "synthetic" / SCENE).glob("lines2d_query-*.h5")
+    with h5py.File(qlines, "a") as f:
         g = f[Q(0)]
         for k in ("lines", "scores"):
             del g[k]
@@ -250,7 +253,8 @@ def test_query_without_lines_keeps_its_point_pose(mini_root, ref, tmp_path):
 
 def test_empty_line_map_falls_back_to_point_poses(mini_root, ref, tmp_path, caplog):
     out = _copy_out(ref, tmp_path)
-    LineMap(np.zeros((0, 2, 3)), metadata={"method": "lift"}).save(out / "synthetic" / SCENE / "linemap.h5")
+    (path,) = (out / "synthetic" / SCENE).glob("map-*/linemap.h5")
+    LineMap(np.zeros((0, 2, 3)), metadata={"method": "lift"}).save(path, stamp=read_stamp(path))  # same settings, no lines
     with lipmap_log(caplog):
         run_eval("synthetic", mini_root, [SCENE], out, CONF)
     assert any("linemap.h5: the line map has no lines; point+line poses will be the point-only poses" in r.getMessage()
@@ -286,7 +290,7 @@ def test_raycast_query_on_a_map_without_planes_stops_once(mini_root, ref, tmp_pa
 # hloc inputs
 # ----------------------------------------------------------------------------------------------
 def test_bad_hloc_files_fail_their_queries_only(mini_root, ref, tmp_path):
-    src = ref["out"] / "synthetic" / SCENE / "points"
+    (src,) = (ref["out"] / "synthetic" / SCENE).glob("points-*")
     hloc = tmp_path / "hloc" / SCENE
     hloc.mkdir(parents=True)
     shutil.copytree(next(src.glob("sfm_*")), hloc / "sfm")
@@ -303,7 +307,7 @@ def test_bad_hloc_files_fail_their_queries_only(mini_root, ref, tmp_path):
         del f[Q(3)]["keypoints"]
         f[Q(3)].create_dataset("keypoints", data=np.full(kp.shape, b"x", dtype="S1"))
     out = _copy_out(ref, tmp_path)
-    shutil.rmtree(out / "synthetic" / SCENE / "points")
+    shutil.rmtree(next((out / "synthetic" / SCENE).glob("points-*")))
     run_eval("synthetic", mini_root, [SCENE], out, CONF, hloc_dir=tmp_path / "hloc")
     res = _scene_results(out)
     feats = hloc / "features.h5"
@@ -321,7 +325,7 @@ def test_bad_hloc_files_fail_their_queries_only(mini_root, ref, tmp_path):
 def test_pairs_naming_images_missing_from_features(ref, tmp_path):
     from localization.points import match_features
 
-    src = ref["out"] / "synthetic" / SCENE / "points"
+    (src,) = (ref["out"] / "synthetic" / SCENE).glob("points-*")
     pairs = tmp_path / "pairs.txt"
     pairs.write_text(f"{Q(0)} seq-01/frame-000000.color.png\n{Q(0)} seq-01/frame-000099.color.png\n")
     with pytest.raises(InputError) as e:
@@ -336,16 +340,17 @@ def test_pairs_naming_images_missing_from_features(ref, tmp_path):
 # ----------------------------------------------------------------------------------------------
 def test_sigkill_during_mapping_then_resume_gives_same_results(mini_root, ref, tmp_path):
     out = tmp_path / "run"
-    script = ("import sys; sys.path.insert(0, 'tests'); from test_pipeline import CONF; "
-              "from localization.pipeline import run_eval; run_eval('synthetic', sys.argv[1], ['room-s1'], sys.argv[2], CONF)")
+    script = ("import sys; sys.path.insert(0, 'tests'); from test_pipeline import CONF; from lipmap.testing import kill_at; "
+              "from localization.pipeline import run_eval; "
+              "run_eval('synthetic', sys.argv[1], ['room-s1'], sys.argv[2], CONF, checkpoint=kill_at('mapped'))")
     killed = subprocess.run([sys.executable, "-c", script, str(mini_root), str(out)], capture_output=True, text=True,
-                            cwd=REPO, env={**os.environ, "LIPMAP_FAULT": "mapped:1"}, timeout=300)
+                            cwd=REPO, timeout=300)
     assert killed.returncode == -9, killed.stderr[-2000:]  # SIGKILL right after linemap.h5 was written
     scene_dir = out / "synthetic" / SCENE
-    linemap = scene_dir / "linemap.h5"
-    assert linemap.exists() and not (scene_dir / "points").exists() and not (scene_dir / "results.json").exists()
-    assert not list(scene_dir.glob(".*.tmp*"))  # atomic writes leave no half-written files behind
-    stamp = linemap.stat().st_mtime_ns
+    (linemap,) = scene_dir.glob("map-*/linemap.h5")
+    assert not list(scene_dir.glob("points-*")) and not (scene_dir / "results.json").exists()
+    assert not list(scene_dir.rglob(".*.tmp*"))  # atomic writes leave no half-written files behind
+    mtime = linemap.stat().st_mtime_ns
     path = run_eval("synthetic", mini_root, [SCENE], out, CONF)
-    assert linemap.stat().st_mtime_ns == stamp  # resumed from the line map, not rebuilt
+    assert linemap.stat().st_mtime_ns == mtime  # resumed from the line map, not rebuilt
     assert _numbers(json.loads(path.read_text())) == _numbers(ref["all"])

@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from lipmap import InputError
-from lipmap.datasets.registration import backproject, project, register_depth
+from lipmap.datasets.registration import register_depth
+from lipmap.geometry import backproject_depth as backproject, project_cam_points as project
 from lipmap.scene import Camera
 
 

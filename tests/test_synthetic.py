@@ -18,7 +18,7 @@ from lipmap.errors import InputError
 from lipmap.imageio import read_color, read_depth, read_normals
 from lipmap.poses import invert_T, rotation_error_deg
 from lipmap.scene import Camera
-from lipmap.datasets.registration import backproject, project
+from lipmap.geometry import backproject_depth as backproject, project_cam_points as project
 from lipmap.datasets.synthetic import (
     SYNTH_PRESETS,
     SynthConfig,

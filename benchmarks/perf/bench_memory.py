@@ -8,8 +8,8 @@
 A synthetic scene (``lipmap.datasets.synthetic``) is generated with few mapping frames and many
 query frames, then ``localization.pipeline.localize_scene`` runs once: line map (``lift``), SIFT
 point map, query SIFT + retrieval + matching, query lines, then the per-query loop. Inside the loop
-the pipeline's per-query hook (``fault_point("query")``, called after each journal write) records the
-resident set size. At the first query the peak counter (``VmHWM``) is reset through
+the pipeline's checkpoint callback (``checkpoint("query")``, called after each journal write) records
+the resident set size. At the first query the peak counter (``VmHWM``) is reset through
 ``/proc/self/clear_refs``, so ``peak_rss_mb`` is the peak of the localization loop only, not of
 the preparation (query SIFT for all images); ``process_peak_rss_mb`` is the peak since the start
 (the larger of the preparation's peak, read before the reset, and the loop's).
@@ -101,8 +101,6 @@ def main(argv=None):
     marks = {1, 100, args.n_query}
     lines = []
     state = {"t_loop": None}
-    original = pipeline.fault_point
-
     def hook(name: str):
         if name == "query":
             n = len(samples) + 1
@@ -119,15 +117,10 @@ def main(argv=None):
                        "loop_s": round(time.time() - state["t_loop"], 2)}
                 lines.append(rec)
                 print(json.dumps(rec), flush=True)
-        original(name)
 
-    pipeline.fault_point = hook
     rss_start = rss_mb()
     t1 = time.time()
-    try:
-        res = localize_scene(scene, args.workdir / "out", conf)
-    finally:
-        pipeline.fault_point = original
+    res = localize_scene(scene, args.workdir / "out", conf, checkpoint=hook)
     t_total = time.time() - t1
     if len(samples) < args.n_query:
         print(json.dumps({"warning": f"only {len(samples)} queries were localized in this process "

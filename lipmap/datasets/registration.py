@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scene import Camera
+from ..geometry import backproject_depth, project_cam_points
 
 # 7-Scenes / Kinect v1: colour_from_depth estimated from pose.txt (depth camera, KinectFusion) and the
 # dSLAM pseudo-GT (colour camera) of RedKitchen frames 0-490: colour_from_depth = dslam_cw @ posetxt_wc,
@@ -19,26 +19,9 @@ SEVENSCENES_COLOR_FROM_DEPTH = np.array(
 )
 
 
-def backproject(depth: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame 3D points (N, 3) of the valid pixels of ``depth`` (H, W), and their flat indices."""
-    rays = camera.pixel_rays().reshape(-1, 3)
-    d = depth.reshape(-1)
-    idx = np.flatnonzero(d > 0)
-    return rays[idx] * d[idx, None], idx
-
-
-def project(points_cam: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates (N, 2) (COLMAP convention) and depths (N,) of camera-frame points."""
-    z = points_cam[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = camera.fx * points_cam[:, 0] / z + camera.cx
-        y = camera.fy * points_cam[:, 1] / z + camera.cy
-    return np.stack([x, y], -1), z
-
-
-def splat_depth(points_cam: np.ndarray, camera: Camera) -> np.ndarray:
+def splat_depth(points_cam: np.ndarray, camera) -> np.ndarray:
     """Z-buffered nearest-pixel depth image (H, W) of camera-frame points; 0 where nothing lands."""
-    uv, z = project(points_cam, camera)
+    uv, z = project_cam_points(points_cam, camera) if len(points_cam) else (np.zeros((0, 2)), np.zeros(0))
     col = np.floor(uv[:, 0]).astype(np.int64, copy=False) if len(uv) else np.zeros(0, np.int64)
     row = np.floor(uv[:, 1]).astype(np.int64, copy=False) if len(uv) else np.zeros(0, np.int64)
     ok = (z > 0) & (col >= 0) & (col < camera.width) & (row >= 0) & (row < camera.height)
@@ -50,7 +33,7 @@ def splat_depth(points_cam: np.ndarray, camera: Camera) -> np.ndarray:
     return out.reshape(camera.height, camera.width).astype(np.float32)
 
 
-def register_depth(depth: np.ndarray, depth_camera: Camera, color_camera: Camera, color_from_depth) -> np.ndarray:
+def register_depth(depth: np.ndarray, depth_camera, color_camera, color_from_depth) -> np.ndarray:
     """Depth (H_d, W_d) metres in the depth camera -> depth (H_c, W_c) metres in the colour camera.
 
     Back-project with the depth intrinsics, move by ``color_from_depth`` (4x4), re-project with the
@@ -58,7 +41,7 @@ def register_depth(depth: np.ndarray, depth_camera: Camera, color_camera: Camera
     stay 0 (invalid); single-pixel cracks from the focal-length change are filled from their
     neighbours so the registered map is as dense as the sensor's.
     """
-    pts, _ = backproject(depth, depth_camera)
+    pts, _ = backproject_depth(depth, depth_camera)
     T = np.eye(4) if color_from_depth is None else np.asarray(color_from_depth, dtype=float)
     pts = pts @ T[:3, :3].T + T[:3, 3]
     out = splat_depth(pts, color_camera)
@@ -87,10 +70,10 @@ def cross_view_depth_residuals(depth_i, view_i, depth_j, view_j, max_residual: f
     Residuals above ``max_residual`` (occlusions) are dropped. Measures how consistent depth and poses
     are: registration that is right makes it small.
     """
-    pts, _ = backproject(depth_i, view_i.camera)
+    pts, _ = backproject_depth(depth_i, view_i.camera)
     j_from_i = view_j.cam_from_world @ np.linalg.inv(view_i.cam_from_world)
     pts = pts @ j_from_i[:3, :3].T + j_from_i[:3, 3]
-    uv, z = project(pts, view_j.camera)
+    uv, z = project_cam_points(pts, view_j.camera)
     ok = z > 0.1
     col = np.floor(uv[ok, 0]).astype(int)
     row = np.floor(uv[ok, 1]).astype(int)

@@ -34,6 +34,7 @@ from .. import logger
 from ..errors import InputError
 from ..imageio import atomic_path, write_color, write_depth, write_normals, write_text_atomic
 from ..poses import invert_T, make_T
+from ..presets import resolve
 from ..scene import Camera
 from .synth_render import RenderScene, render_view
 from .synth_room import Room, build_room
@@ -99,12 +100,9 @@ def corrupt_depth(depth: np.ndarray, rng: np.random.Generator, warp_sigma: float
     return np.where(depth > 0, np.maximum(noisy, 1e-3), 0.0)
 
 
-def get_config(preset) -> SynthConfig:
-    if isinstance(preset, SynthConfig):
-        return preset
-    if preset not in SYNTH_PRESETS:
-        raise InputError(f"unknown synthetic preset {preset!r}", hint=f"choose one of {sorted(SYNTH_PRESETS)}")
-    return SYNTH_PRESETS[preset]
+def get_config(preset="small") -> SynthConfig:
+    """A :class:`SynthConfig` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
+    return resolve(preset, SYNTH_PRESETS, "synthetic scene", default="small")
 
 
 # ---- trajectories -----------------------------------------------------------------------------------------

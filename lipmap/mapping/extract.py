@@ -19,7 +19,6 @@ from scipy.sparse.csgraph import connected_components
 from tqdm import tqdm
 
 from .. import geometry as geo
-from .. import logger
 from .assign import PlaneRaycaster, assign_lines, corner_edges
 
 

@@ -10,55 +10,35 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Callable, Optional
 
 import numpy as np
 
 from .. import logger
+from ..artifacts import Stamp, reuse, scene_key, variant_dir
 from ..errors import InputError
+from ..presets import resolve
 from .extract import ExtractConfig, build_tracks, depth_residuals, extract_observations, merge_edges
 
 
 @dataclass
 class MappingConfig:
+    """Line mapping settings; named presets in :data:`confs` (figures behind each default:
+    ``benchmarks/results/`` and ``docs/tuning.md``)."""
+
     preset: str = "fast"
     lines: str = "lsd"  # lipmap.lines2d preset
     planes: str = "fast-lines"  # lipmap.planes.optimize preset
-    # Line term: paper alpha_L = 0.1 and the reference's loss 0.5 * D_euc + max D_ort. Measured with
-    # "fast-lines" (line F@5cm on room-s0 / RedKitchen mini, edge lines only, 24 epochs unless said):
-    # D_euc drags every edge towards the ends of short fragments (RedKitchen lines: median 30 px);
-    # dropping it and raising the weight to 0.3: RedKitchen F 0.176 -> 0.195. With plain pixel
-    # distances, weight 0.5 wins on the synthetic room (F 0.326 -> 0.359 at 72 epochs) but on RedKitchen
-    # bends planes off the surface (PREC@5cm 0.80 -> 0.51): a texture line inside a plane is assigned to
-    # that plane's nearest edge, tens of pixels away, and drags it; even at weight 0.3, 27 % of the
-    # RedKitchen pixels ended > 5 cm off the sensor depth (12 % for planes fitted without lines).
-    # The robust loss (robust_scale 2 px: the pull of an edge 20 px away is 1/11 of a close one's)
-    # keeps the planes where the depth puts them (13 % at weight 1, 16 % at 2) and lets the weight
-    # rise: full maps (edges + on-plane lines), F@5cm / R@50mm at weights 0.3 / 1 / 2:
-    # room-s0 0.390 / 0.419 / 0.448, 446 / 547 / 637; RedKitchen 0.739 / 0.724 / 0.696, 418 / 417 / 419.
-    line_weight: float = 1.0
-    pixels_per_line: int = 1
-    group_loss: bool = False
-    endpoint_weight: float = 0.0  # D_euc weight in the line loss (0.5: reference code)
-    robust_scale: float = 2.0  # px (full resolution); > 0: robust line loss (losses.robust_px); 0: paper
-    # Detections that no plane edge explains (texture, and lines inside a surface: most of them in real
-    # rooms) lifted onto the optimized planes with the ``lift`` procedure (the preset in field ``lift``), depth ray
-    # cast from the planes. False = the paper's output, plane edges only (RedKitchen mini, `lipmap-loc map`:
-    # 334 edge lines, F@5cm 0.370, R@50mm 121; with on-plane lines 3411 lines, F 0.793, R@50mm 518).
-    on_plane_lines: bool = True
-    # On-plane lines take the input depth where the planes are more than this far from it (metres; 0 = plane
-    # depth alone): on clutter no plane models, the planes sit a median 4.7 cm off the sensor depth
-    # (RedKitchen). RedKitchen mini F@5cm / R@50mm at 0 / 1 / 2 / 3 / 5 cm (with the paper's extraction
-    # thresholds): 0.716 / 0.785 / 0.785 / 0.786 / 0.778, 429 / 462 / 464 / 474 / 470; room-s0 (exact
-    # depth) 0.428 -> 0.439 at 3 cm. Noisy depth (synthetic preset small-noisy-depth): 0 is as good.
-    plane_depth_tol: float = 0.03
-    # Extraction: the paper's 1 px / 0.01 rad (ExtractConfig defaults, preset "paper") assume planes trained at
-    # full resolution to convergence; "fast" trains RedKitchen at half resolution, where 1 full-res px is half
-    # a training pixel. 2 px / 0.02 rad on the same planes, full map (plane edges) F@5cm, R@50mm:
-    # RedKitchen 0.786 -> 0.793 (edges 0.239 -> 0.370; 179 -> 334 edge lines), 474 -> 518; room-s0
-    # 0.439 -> 0.462 (0.351 -> 0.403), 581 -> 639; room-s1 0.444 -> 0.461; noisy room-s0 0.425 -> 0.446.
-    # 3 px / 0.03 rad gains less again and costs edge precision (RedKitchen edges PREC 0.933 / 0.921 / 0.901).
+    line_weight: float = 1.0  # paper alpha_L 0.1; the robust loss below lets a higher weight help without bending planes
+    pixels_per_line: int = 1  # region pixels sampled per line per iteration (reference: 1)
+    group_loss: bool = False  # the paper's group loss; off in the reference code, ~1.6x the time for little gain
+    endpoint_weight: float = 0.0  # D_euc weight (reference 0.5): it drags edges to the ends of short fragments
+    robust_scale: float = 2.0  # px (full resolution), 0 = paper: an edge far from its line is usually another surface's
+    on_plane_lines: bool = True  # lift the detections no plane edge explains onto the planes (ours, not the paper's)
+    plane_depth_tol: float = 0.03  # m: on-plane lines take the input depth where the planes are farther from it (clutter)
+    # 2 px / 0.02 rad: "fast" trains at half resolution, where the paper's 1 px is half a training pixel
     extract: ExtractConfig = field(default_factory=lambda: ExtractConfig(max_dist=2.0, max_angle=0.02))
     lift: str = "lift-merge-loose"  # lipmap.lift preset: method "lift", and the on-plane lines of "lipmap"
     seed: int = 0
@@ -74,17 +54,44 @@ confs = {
                            on_plane_lines=False, extract=ExtractConfig()),
 }
 
+METHODS = ("lipmap", "lift")
 
-def get_conf(conf) -> MappingConfig:
-    if conf is None:
-        return confs["fast"]
-    if isinstance(conf, str):
-        if conf not in confs:
-            raise InputError(f"unknown mapping preset {conf!r}; choose one of {', '.join(confs)}")
-        return confs[conf]
-    if isinstance(conf, dict):
-        return replace(confs[conf.get("preset", "fast")], **{k: v for k, v in conf.items() if k != "preset"})
-    return conf
+
+def get_conf(conf=None) -> MappingConfig:
+    """A :class:`MappingConfig` from a preset name, a dict of overrides (``{"preset": ..., **fields}``) or itself."""
+    return resolve(conf, confs, "mapping", default="fast")
+
+
+def lines_settings(conf: MappingConfig, lines_source=None) -> dict:
+    """What the 2D lines of a map depend on: the detector preset's settings, or the imported source."""
+    if lines_source is not None:
+        return {"import": str(Path(lines_source).resolve())}
+    from ..lines2d import get_conf as lines_conf
+
+    return {"detector": asdict(lines_conf(conf.lines))}
+
+
+def mapping_stamp(scene, conf=None, method: str = "lipmap", lines_source=None) -> Stamp:
+    """The :class:`~lipmap.artifacts.Stamp` of the ``linemap.h5`` that :func:`map_scene` would build."""
+    conf = get_conf(conf)
+    settings = {"method": method, "lines": lines_settings(conf, lines_source), "scene": scene_key(scene)}
+    if method == "lift":
+        from ..lift import get_conf as lift_conf
+
+        settings["lift"] = asdict(lift_conf(conf.lift))
+    else:
+        from ..planes.optimize import PlaneOptConfig
+
+        settings["mapping"] = asdict(conf)
+        settings["planes"] = {k: v for k, v in PlaneOptConfig.preset(conf.planes, seed=conf.seed).to_dict().items()
+                              if k not in ("progress", "device")}
+    return Stamp("linemap", settings)
+
+
+def map_variant_dir(scene_dir, scene, conf=None, method: str = "lipmap", lines_source=None) -> Path:
+    """``scene_dir/map-<method>-<preset>-<digest>``: where a pipeline keeps this variant of the map."""
+    conf = get_conf(conf)
+    return variant_dir(scene_dir, f"map-{method}-{conf.preset}", mapping_stamp(scene, conf, method, lines_source))
 
 
 def _lines_by_view(lines_h5: Path, views) -> dict:
@@ -102,41 +109,27 @@ def detect_or_import_lines(views, out_dir: Path, conf: MappingConfig, lines_sour
     return detect_lines(views, out, conf.lines, overwrite=overwrite)
 
 
-def fit_planes_with_lines(scene, lines_by_view: dict, out_dir: Path, conf: MappingConfig, overwrite=False):
-    """Joint line-plane optimization; writes/reads ``planes.h5`` and ``planes.ply``. Returns Planes."""
-    from ..planes import io as pio
-    from ..planes.init import depth_frames, downscale_frames, init_planes
-    from ..planes.optimize import PlaneOptConfig, _device, optimize_planes, prepare_targets
+def line_supervision(lines_by_view: dict, conf: MappingConfig):
+    """The line term of the joint optimization with ``conf``'s settings."""
     from .supervision import LineSupervision
 
-    planes_h5 = out_dir / "planes.h5"
-    if planes_h5.exists() and not overwrite:
-        logger.info("Skipping plane optimization: %s exists.", planes_h5)
-        return pio.load_planes(planes_h5)
-    pconf = PlaneOptConfig.preset(conf.planes, seed=conf.seed)
-    dev = _device(pconf)
-    frames = depth_frames(scene.mapping)
-    if not frames:
-        raise InputError(f"scene {scene.name}: no mapping view has depth and a pose", scene.root)
-    t0 = time.time()
-    planes = init_planes(None, pconf.init, device=dev, frames=downscale_frames(frames, pconf.init.depth_downscale))
-    t_init = time.time() - t0
-    targets = prepare_targets(frames, pconf, device=dev)
-    sup = LineSupervision(lines_by_view, weight=conf.line_weight, pixels_per_line=conf.pixels_per_line,
-                          use_group=conf.group_loss, seed=conf.seed,
-                          endpoint_weight=conf.endpoint_weight, robust_scale=conf.robust_scale)
-    planes, history = optimize_planes(targets, planes, pconf, extra_loss=sup)
-    history["init_seconds"] = t_init
-    history["total_seconds"] = time.time() - t0
-    pio.save_planes(planes_h5, planes, attrs={"config": pconf.to_dict(), "mapping": asdict(conf), "history": history,
-                                              "scene": scene.name, "dataset": scene.dataset})
-    pio.export_planes_ply(out_dir / "planes.ply", planes)
-    from ..testing import fault_point
+    return LineSupervision(lines_by_view, weight=conf.line_weight, pixels_per_line=conf.pixels_per_line,
+                           use_group=conf.group_loss, seed=conf.seed, endpoint_weight=conf.endpoint_weight,
+                           robust_scale=conf.robust_scale)
 
-    fault_point("planes")
-    logger.info("planes: %d after %d epochs in %.1f s (init %.1f s)", len(planes), pconf.epochs,
-                history["total_seconds"], t_init)
-    return planes
+
+def fit_planes_with_lines(scene, lines_by_view: dict, out_dir: Path, conf: MappingConfig, lines_source=None,
+                          overwrite=False):
+    """Joint line-plane optimization (:func:`lipmap.planes.optimize.fit_planes` with the line term);
+    writes or reuses ``planes.h5`` and ``planes.ply``. Returns Planes."""
+    from ..planes import io as pio
+    from ..planes.optimize import PlaneOptConfig, fit_planes
+
+    pconf = PlaneOptConfig.preset(conf.planes, seed=conf.seed)
+    sup = line_supervision(lines_by_view, conf)
+    path = fit_planes(scene, out_dir, pconf, extra_loss=sup, overwrite=overwrite,
+                      stamp_extra={"line_term": sup.settings(), "lines": lines_settings(conf, lines_source)})
+    return pio.load_planes(path)
 
 
 def lipmap_linemap(scene, planes, lines_by_view: dict, conf: MappingConfig, depth_by_view=None):
@@ -210,24 +203,30 @@ def edge_line_mask(lm) -> np.ndarray:
     return mask
 
 
-def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=None, overwrite: bool = False) -> Path:
-    """Build the line map of ``scene`` in ``out_dir``; returns the path of ``linemap.h5``."""
-    from ..linemap import LineMap
+def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=None, overwrite: bool = False,
+              checkpoint: Optional[Callable[[str], None]] = None) -> Path:
+    """Build the line map of ``scene`` in ``out_dir``; returns the path of ``linemap.h5``.
 
+    Reuses ``out_dir/linemap.h5`` when the same settings and inputs made it; stops with
+    :class:`~lipmap.artifacts.StaleArtifactError` naming both settings when others did (a pipeline that
+    keeps several variants maps each into :func:`map_variant_dir`). ``checkpoint(event)`` is called after
+    each artifact is written (``"lines2d"``, ``"planes"``, ``"linemap"``): progress, or fault injection in tests.
+    """
     conf = get_conf(conf)
-    if method not in ("lipmap", "lift"):
-        raise InputError(f"unknown mapping method {method!r}; choose lipmap or lift")
+    if method not in METHODS:
+        raise InputError(f"unknown mapping method {method!r}; choose one of {', '.join(METHODS)}")
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     out = out_dir / "linemap.h5"
-    if out.exists() and not overwrite:
-        logger.info("Skipping mapping: %s exists.", out)
+    stamp = mapping_stamp(scene, conf, method, lines_source)
+    if reuse(out, stamp, overwrite, "mapping"):
         return out
+    out_dir.mkdir(parents=True, exist_ok=True)
+    checkpoint = checkpoint or (lambda event: None)
     t0 = time.time()
     timings = {}
     lines_h5 = detect_or_import_lines(scene.mapping, out_dir, conf, lines_source, overwrite)
-    lines_by_view = _lines_by_view(lines_h5, scene.mapping)
     timings["lines2d_s"] = time.time() - t0
+    checkpoint("lines2d")
     if method == "lift":
         from ..lift import lift_linemap
 
@@ -235,25 +234,32 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
         lm = lift_linemap(scene.mapping, lines_h5, conf.lift)
         timings["lift_s"] = time.time() - t
     else:
+        lines_by_view = _lines_by_view(lines_h5, scene.mapping)
         t = time.time()
-        planes = fit_planes_with_lines(scene, lines_by_view, out_dir, conf, overwrite)
+        planes = fit_planes_with_lines(scene, lines_by_view, out_dir, conf, lines_source, overwrite)
         timings["optimize_s"] = time.time() - t
+        checkpoint("planes")
         t = time.time()
         depth = {v.name: v.load_depth() for v in scene.mapping if v.depth_path is not None}
         lm = lipmap_linemap(scene, planes, lines_by_view, conf, depth)
         timings["extract_s"] = time.time() - t
     timings["total_s"] = time.time() - t0
     lm.metadata.update({"scene": scene.name, "dataset": scene.dataset, "pose_source": scene.pose_source,
-                        "timings": timings, "method": method})
-    lm.save(out)
+                        "timings": timings, "method": method, "preset": conf.preset})
+    lm.save(out, stamp=stamp)
     lm.to_ply(out_dir / "linemap.ply")
+    _render(lm, scene, out_dir)
+    checkpoint("linemap")
+    n_img = lm.supports[:, 0] if len(lm) else np.zeros(0)
+    logger.info("Mapped %s with %s: %d lines (median %.0f views each) in %.1f s -> %s", scene.name, method, len(lm),
+                np.median(n_img) if len(n_img) else 0, timings["total_s"], out)
+    return out
+
+
+def _render(lm, scene, out_dir: Path) -> None:
     try:
         from ..viz import render_linemap_views
 
         render_linemap_views(lm, scene, out_dir)
     except Exception as e:  # noqa: BLE001 - a failed picture must not lose the map
         logger.warning("Could not render the line map: %s", e)
-    n_img = lm.supports[:, 0] if len(lm) else np.zeros(0)
-    logger.info("Mapped %s with %s: %d lines (median %.0f views each) in %.1f s -> %s", scene.name, method, len(lm),
-                np.median(n_img) if len(n_img) else 0, timings["total_s"], out)
-    return out

@@ -14,7 +14,7 @@ from .losses import line_loss
 
 
 class LineSupervision:
-    """``extra_loss(view, planes, iteration) -> weight * line loss`` for :func:`optimize_planes`.
+    """``extra_loss(view, planes, iteration, render) -> weight * line loss`` for :func:`optimize_planes`.
 
     Args:
         lines_by_view: {view name: (N, 4) detected segments at the view's FULL resolution}.
@@ -48,13 +48,18 @@ class LineSupervision:
             self._regions[key] = line_regions(self.lines[name], camera.width, camera.height)
         return self._regions[key]
 
-    def __call__(self, view, planes, iteration: int, render=None, camera=None):
-        """Line loss of ``view`` at the training resolution (``camera``, else that of ``render``)."""
-        if camera is None:
-            camera = view.camera
-            if render is not None:
-                h, w = render.hits.shape[:2]
-                camera = view.camera.scaled(w / view.camera.width)
+    def settings(self) -> dict:
+        """What shapes the loss, for the planes' artifact stamp."""
+        return {"weight": self.weight, "pixels_per_line": self.pixels_per_line, "use_group": self.use_group,
+                "group_weight": self.group_weight, "seed": self.seed, "endpoint_weight": self.endpoint_weight,
+                "robust_scale": self.robust_scale}
+
+    def __call__(self, view, planes, iteration: int, render=None):
+        """Line loss of ``view`` at the training resolution (that of ``render``; the view's own without one)."""
+        camera = view.camera
+        if render is not None:
+            h, w = render.hits.shape[:2]
+            camera = view.camera.scaled(w / view.camera.width)
         lines = self.lines.get(view.name)
         corners = planes.corners()
         zero = corners.sum() * 0

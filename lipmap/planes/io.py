@@ -16,11 +16,12 @@ from .primitives import Planes, triangle_mesh
 FORMAT_VERSION = 1
 
 
-def save_planes(path, planes: Planes, attrs: Optional[dict] = None) -> Path:
+def save_planes(path, planes: Planes, attrs: Optional[dict] = None, stamp=None) -> Path:
     """Write ``planes`` to HDF5: datasets ``center`` (K,3), ``quat`` (K,4, wxyz), ``radii`` (K,4, x+ x- y+ y-).
 
     ``attrs`` (e.g. the optimisation config and history) is stored as JSON in the file attribute
-    ``meta``. The write is atomic: a killed run never leaves a half-written file.
+    ``meta``; ``stamp`` (:class:`lipmap.artifacts.Stamp`) records the settings that made the planes.
+    The write is atomic: a killed run never leaves a half-written file.
     """
     path = Path(path)
     arrays = planes.numpy()
@@ -31,6 +32,8 @@ def save_planes(path, planes: Planes, attrs: Optional[dict] = None) -> Path:
             f.attrs["format"] = "lipmap-planes"
             f.attrs["version"] = FORMAT_VERSION
             f.attrs["meta"] = json.dumps(attrs or {}, default=str)
+            for k, v in (stamp.h5_attrs() if stamp is not None else {}).items():
+                f.attrs[k] = v
     return path
 
 

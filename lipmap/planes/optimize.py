@@ -7,13 +7,13 @@ no view) and splitting (mean |grad| of an axis's radii >= threshold). Reference-
 DESIGN.md; what is ours is said where it is done.
 
 Hook for the line loss: ``optimize_planes(..., extra_loss=f)`` adds ``f(view, planes, iteration,
-render)`` (a scalar tensor, already weighted) to the total; see :func:`optimize_planes`. Pruning and
+render)`` (a scalar tensor, already weighted) to the total, with that one fixed signature; see
+:func:`optimize_planes`. Pruning and
 splitting go through :func:`prune_and_split`, whose :class:`PlaneIndexMap` lets callers carry
 per-plane state across the change.
 """
 from __future__ import annotations
 
-import inspect
 import math
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -26,9 +26,10 @@ import torch
 from .. import logger
 from ..errors import InputError
 from ..normals import normals_from_depth
-from .init import DepthFrame, PlaneInitConfig, auto_downscale, depth_frames, downscale_frames, init_planes, resize_nearest
+from ..presets import resolve
+from .init import PlaneInitConfig, auto_downscale, depth_frames, downscale_frames, init_planes, resize_nearest
 from .io import export_planes_ply, save_planes
-from .primitives import MAX_HITS, R_MAX, R_MIN, Planes
+from .primitives import MAX_HITS, Planes
 from .render import TILE_SIZE, RenderOutput, lambda_schedule, rasterize_planes
 
 
@@ -68,14 +69,9 @@ class PlaneOptConfig:
     init: PlaneInitConfig = field(default_factory=PlaneInitConfig)
 
     @staticmethod
-    def preset(name: str, **overrides) -> "PlaneOptConfig":
-        if name not in confs:
-            raise InputError(f"unknown plane optimization preset {name!r}; choose one of {', '.join(confs)}")
-        init_over = overrides.pop("init", None)
-        conf = replace(confs[name](), **overrides)
-        if init_over is not None:
-            conf.init = init_over if isinstance(init_over, PlaneInitConfig) else replace(conf.init, **init_over)
-        return conf
+    def preset(name: str = "fast", **overrides) -> "PlaneOptConfig":
+        """Preset ``name`` with field overrides (``init`` takes a dict of overrides or a PlaneInitConfig)."""
+        return resolve({"preset": name, **overrides}, confs, "plane optimization", default="fast")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -137,7 +133,7 @@ def _paper() -> PlaneOptConfig:
     return PlaneOptConfig(name="paper", epochs=60, downscale=1, init=PlaneInitConfig(voxel_size=0.01, depth_downscale=1))
 
 
-confs = {"fast": _fast, "fast-lines": _fast_lines, "paper": _paper}
+confs = {"fast": _fast(), "fast-lines": _fast_lines(), "paper": _paper()}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -314,7 +310,8 @@ def prune_and_split(
 # ------------------------------------------------------------------------------------------------
 # optimization loop
 # ------------------------------------------------------------------------------------------------
-def _device(conf: PlaneOptConfig) -> torch.device:
+def select_device(conf: PlaneOptConfig) -> torch.device:
+    """The torch device of ``conf.device`` ("auto" = CUDA when available, else CPU)."""
     if conf.device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(conf.device)
@@ -342,22 +339,168 @@ def _make_optimizer(params: list, conf: PlaneOptConfig, old: Optional[torch.opti
     return opt
 
 
-def _call_extra(extra_loss, view, planes, it, render):
-    if extra_loss is None:
+@dataclass
+class Schedule:
+    """Per-iteration values of the run: splat sharpness, plane-loss decay, learning-rate factor."""
+
+    conf: PlaneOptConfig
+    max_iters: int
+
+    @property
+    def split_stop(self) -> int:
+        return int(self.conf.split_stop_frac * self.max_iters)
+
+    def lam(self, it: int) -> float:
+        return lambda_schedule(it, self.max_iters, self.conf.lambda_min, self.conf.lambda_max)
+
+    def decay(self, it: int) -> float:
+        return max(math.exp(-it / self.max_iters), self.conf.decay_floor)
+
+    def set_lr(self, opt: torch.optim.Adam, it: int) -> None:
+        # Adam moves each parameter by ~lr per step whatever its gradient, so edge positions jitter at
+        # the lr scale; annealing lets them settle to the pixel level at the end
+        if self.conf.lr_final_frac == 1.0:
+            return
+        f = self.conf.lr_final_frac ** (it / max(self.max_iters - 1, 1))
+        for g, base in zip(opt.param_groups, (self.conf.lr_center, self.conf.lr_quat, self.conf.lr_radii)):
+            g["lr"] = base * f
+
+
+@dataclass
+class _EpochStats:
+    """What one epoch gathers for pruning, splitting and the history."""
+
+    seen: torch.Tensor  # (K,) bool: planes some view rendered
+    grad_sum: torch.Tensor  # (K, 2) sum of mean |grad| of the x radii and of the y radii
+    grad_count: torch.Tensor  # (K,) views in which each plane was visible at a step
+    loss: float = 0.0
+    depth: float = 0.0
+    normal: float = 0.0
+    used: int = 0
+    skipped: int = 0
+
+    @classmethod
+    def zeros(cls, K: int, device) -> "_EpochStats":
+        return cls(torch.zeros(K, dtype=torch.bool, device=device), torch.zeros(K, 2, device=device),
+                   torch.zeros(K, device=device))
+
+    def add_step(self, total: torch.Tensor, parts: Optional[dict], radii_grad: Optional[torch.Tensor], vis: torch.Tensor):
+        g = radii_grad.abs() if radii_grad is not None else torch.zeros_like(self.grad_sum[:, :1]).expand(-1, 4)
+        self.grad_sum[:, 0] += 0.5 * (g[:, 0] + g[:, 1])
+        self.grad_sum[:, 1] += 0.5 * (g[:, 2] + g[:, 3])
+        self.grad_count += vis.float()
+        self.loss += float(total.detach())
+        self.depth += parts.get("depth", 0.0) if parts else 0.0
+        self.normal += parts.get("normal", 0.0) if parts else 0.0
+        self.used += 1
+
+    def radii_grad(self) -> torch.Tensor:
+        """:math:`(K, 2)` mean |grad| per axis over the views that saw each plane."""
+        return self.grad_sum / self.grad_count.clamp(min=1)[:, None]
+
+
+def _total_loss(pl: Optional[tuple], extra, plane_scale: float):
+    """``plane_scale * plane loss + extra`` (either may be missing); None when nothing has a gradient."""
+    total = None if pl is None else plane_scale * pl[0]
+    if extra is not None and torch.is_tensor(extra) and extra.requires_grad:
+        total = extra if total is None else total + extra
+    return total
+
+
+def _apply_step(opt: torch.optim.Adam, params: list, total: torch.Tensor) -> None:
+    """Backward, Adam step, then the reference's re-centring and quaternion normalisation."""
+    opt.zero_grad(set_to_none=False)
+    total.backward()
+    for p in params:
+        if p.grad is not None:
+            torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+    radii_grad = params[2].grad.clone() if params[2].grad is not None else None
+    opt.step()
+    with torch.no_grad():
+        rec = Planes(params[0], params[1], params[2]).recentered()
+        params[0].copy_(rec.center)
+        params[2].copy_(rec.radii)
+        params[1].div_(params[1].norm(dim=1, keepdim=True).clamp(min=1e-12))
+    return radii_grad
+
+
+def _train_view(params, opt, tgt: ViewTarget, it: int, sched: Schedule, extra_loss, stats: _EpochStats):
+    """One iteration on one view; returns the total loss (None when the view gave no gradient)."""
+    conf = sched.conf
+    sched.set_lr(opt, it)
+    out = rasterize_planes(params[0], params[1], params[2], tgt.cam_from_world, tgt.camera.params,
+                           tgt.camera.width, tgt.camera.height, sched.lam(it), conf.max_hits, conf.tile_size)
+    pl = plane_loss(out, tgt, conf)
+    extra = None if extra_loss is None else extra_loss(tgt.view, Planes(params[0], params[1], params[2]), it, out)
+    total = _total_loss(pl, extra, conf.plane_weight * sched.decay(it))
+    vis = out.visible_planes(len(params[0]))
+    stats.seen |= vis
+    if total is None or not torch.isfinite(total):
+        stats.skipped += 1
         return None
-    try:
-        params = inspect.signature(extra_loss).parameters
-        takes_render = "render" in params or any(p.kind == p.VAR_KEYWORD for p in params.values())
-    except (TypeError, ValueError):
-        takes_render = False
-    return extra_loss(view, planes, it, render=render) if takes_render else extra_loss(view, planes, it)
+    radii_grad = _apply_step(opt, params, total)
+    stats.add_step(total, pl[1] if pl else None, radii_grad, vis)
+    return total
+
+
+def _restructure(params: list, opt, stats: _EpochStats, epoch: int, it: int, sched: Schedule, hist: dict):
+    """Once per epoch: prune and split; returns (params, optimizer, index map) of the new plane set."""
+    conf = sched.conf
+    radii_grad = stats.radii_grad()
+    seen_g = radii_grad[stats.grad_count > 0].max(1).values
+    if len(seen_g):
+        q = torch.quantile(seen_g.float(), torch.tensor([0.5, 0.9, 0.99], device=seen_g.device)).tolist()
+        hist.setdefault("radii_grad_q50_q90_q99", []).append([round(x, 4) for x in q])
+    do_split = conf.split and it <= sched.split_stop and epoch < conf.epochs - 1
+    current = Planes(*(p.detach() for p in params))
+    new, imap = prune_and_split(
+        current,
+        seen=stats.seen if conf.prune_unseen else None,
+        radii_grad=radii_grad if do_split else None,
+        min_radius=conf.prune_min_radius,
+        split_threshold=conf.split_grad_threshold if do_split else None,
+        split_into_four=conf.split_into_four,
+        max_planes=conf.max_planes,
+    )
+    if len(new) == 0:
+        logger.warning("pruning would remove every plane; keeping the current set")
+        new, imap = prune_and_split(current, min_radius=0.0, split_threshold=None)
+    params_new = [t.clone().requires_grad_(True) for t in new.tensors()]
+    return params_new, _make_optimizer(params_new, conf, old=opt, parent=imap.parent), imap
+
+
+HISTORY_KEYS = ("loss", "depth", "normal", "planes", "pruned", "unseen", "split", "lambda", "seconds", "skipped")
+
+
+def _record_epoch(hist: dict, stats: _EpochStats, imap, n_planes: int, lam: float, seconds: float, epoch: int):
+    n = max(stats.used, 1)
+    for key, value in (("loss", stats.loss / n), ("depth", stats.depth / n), ("normal", stats.normal / n),
+                       ("planes", n_planes), ("pruned", imap.n_pruned), ("unseen", imap.n_unseen),
+                       ("split", imap.n_split), ("lambda", lam), ("seconds", seconds), ("skipped", stats.skipped)):
+        hist[key].append(value)
+    logger.debug("epoch %d: loss %.4f depth %.4f normal %.4f planes %d (-%d, split %d)", epoch, hist["loss"][-1],
+                 hist["depth"][-1], hist["normal"][-1], n_planes, imap.n_pruned, imap.n_split)
+
+
+def _clean_start(planes: Planes, dev, on_restructure) -> list:
+    """Drop degenerate planes before optimizing; the live parameters [center, quat, radii]."""
+    planes = planes.to(device=dev, dtype=torch.float32)
+    planes, imap = prune_and_split(planes, min_radius=0.0, split_threshold=None)
+    if imap.n_pruned:
+        logger.warning("dropped %d degenerate planes (non-finite or non-positive radii) before optimizing", imap.n_pruned)
+    if on_restructure:
+        on_restructure(imap)
+    return [t.clone().requires_grad_(True) for t in planes.tensors()]
+
+
+ExtraLoss = Callable[[object, Planes, int, RenderOutput], Optional[torch.Tensor]]
 
 
 def optimize_planes(
     targets: list,
     planes: Planes,
     conf: Optional[PlaneOptConfig] = None,
-    extra_loss: Optional[Callable] = None,
+    extra_loss: Optional[ExtraLoss] = None,
     on_restructure: Optional[Callable] = None,
 ) -> tuple[Planes, dict]:
     """Optimize ``planes`` against the views' depth and normals.
@@ -367,11 +510,11 @@ def optimize_planes(
             :class:`~lipmap.scene.View`, loaded here).
         planes: initial planes (degenerate ones are dropped first).
         conf: :class:`PlaneOptConfig` (default: the ``fast`` preset).
-        extra_loss: ``f(view, planes, iteration, render=None) -> scalar tensor or None``, added
-            unweighted to ``plane_weight * decay * plane_loss``; ``planes`` are the live
-            parameters (differentiable), ``render`` the :class:`RenderOutput` of this view at the
-            working resolution (``render.hits[..., 0]`` = the first plane each pixel's ray meets).
-            A ``render`` parameter is optional in ``f``'s signature.
+        extra_loss: ``f(view, planes, iteration, render) -> scalar tensor or None``, added unweighted to
+            ``plane_weight * decay * plane_loss``; ``planes`` are the live parameters (differentiable),
+            ``render`` the :class:`RenderOutput` of this view at the working resolution
+            (``render.hits[..., 0]`` = the first plane each pixel's ray meets). The line term of the
+            joint optimization is one (:class:`lipmap.mapping.supervision.LineSupervision`).
         on_restructure: ``g(index_map: PlaneIndexMap)`` called after every prune/split (and the
             initial clean-up) so per-plane state kept outside can follow.
 
@@ -380,148 +523,76 @@ def optimize_planes(
         ``loss``, ``depth``, ``normal``, ``planes``, ``pruned``, ``split``, ``seconds``).
     """
     conf = conf or PlaneOptConfig.preset("fast")
-    dev = _device(conf)
+    dev = select_device(conf)
     if targets and not isinstance(targets[0], ViewTarget):
         targets = prepare_targets(depth_frames(targets), conf, device=dev)
     if not targets:
         raise InputError("no view with depth and pose to optimize planes against")
-    planes = planes.to(device=dev, dtype=torch.float32)
-    planes, imap = prune_and_split(planes, min_radius=0.0, split_threshold=None)
-    if imap.n_pruned:
-        logger.warning("dropped %d degenerate planes (non-finite or non-positive radii) before optimizing", imap.n_pruned)
-    if on_restructure:
-        on_restructure(imap)
-    params = [t.clone().requires_grad_(True) for t in planes.tensors()]
+    params = _clean_start(planes, dev, on_restructure)
     opt = _make_optimizer(params, conf)
-    n_views = len(targets)
-    max_iters = conf.epochs * n_views
-    split_stop = int(conf.split_stop_frac * max_iters)
+    sched = Schedule(conf, conf.epochs * len(targets))
     rng = np.random.default_rng(conf.seed)
-    hist = {k: [] for k in ("loss", "depth", "normal", "planes", "pruned", "unseen", "split", "lambda", "seconds", "skipped")}
+    hist = {k: [] for k in HISTORY_KEYS}
+    bar = _progress_bar(conf, sched.max_iters)
     it = 0
-    bar = None
-    if conf.progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=max_iters, desc="planes", unit="it", leave=False)
     for epoch in range(conf.epochs):
         t0 = time.time()
-        K = len(params[0])
-        seen = torch.zeros(K, dtype=torch.bool, device=dev)
-        gsum = torch.zeros(K, 2, device=dev)
-        gcnt = torch.zeros(K, device=dev)
-        sums = {"loss": 0.0, "depth": 0.0, "normal": 0.0}
-        n_used = skipped = 0
-        for vi in rng.permutation(n_views):
-            tgt = targets[vi]
-            lam = lambda_schedule(it, max_iters, conf.lambda_min, conf.lambda_max)
-            if conf.lr_final_frac != 1.0:
-                # Adam moves each parameter by ~lr per step whatever its gradient, so edge positions
-                # jitter at the lr scale; annealing lets them settle to the pixel level at the end
-                f = conf.lr_final_frac ** (it / max(max_iters - 1, 1))
-                for g, base in zip(opt.param_groups, (conf.lr_center, conf.lr_quat, conf.lr_radii)):
-                    g["lr"] = base * f
-            out = rasterize_planes(
-                params[0], params[1], params[2], tgt.cam_from_world, tgt.camera.params,
-                tgt.camera.width, tgt.camera.height, lam, conf.max_hits, conf.tile_size,
-            )
-            pl = plane_loss(out, tgt, conf)
-            decay = max(math.exp(-it / max_iters), conf.decay_floor)
-            live = Planes(params[0], params[1], params[2])
-            extra = _call_extra(extra_loss, tgt.view, live, it, out)
-            total = None if pl is None else conf.plane_weight * decay * pl[0]
-            if extra is not None and torch.is_tensor(extra) and extra.requires_grad:
-                total = extra if total is None else total + extra
-            vis = out.visible_planes(K)
-            seen |= vis
-            if total is not None and torch.isfinite(total):
-                opt.zero_grad(set_to_none=False)
-                total.backward()
-                for p in params:
-                    if p.grad is not None:
-                        torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
-                g = params[2].grad.abs() if params[2].grad is not None else torch.zeros_like(params[2])
-                gsum[:, 0] += 0.5 * (g[:, 0] + g[:, 1])
-                gsum[:, 1] += 0.5 * (g[:, 2] + g[:, 3])
-                gcnt += vis.float()
-                opt.step()
-                with torch.no_grad():
-                    rec = Planes(params[0], params[1], params[2]).recentered()
-                    params[0].copy_(rec.center)
-                    params[2].copy_(rec.radii)
-                    params[1].div_(params[1].norm(dim=1, keepdim=True).clamp(min=1e-12))
-                sums["loss"] += float(total.detach())
-                sums["depth"] += pl[1].get("depth", 0.0) if pl else 0.0
-                sums["normal"] += pl[1].get("normal", 0.0) if pl else 0.0
-                n_used += 1
-            else:
-                skipped += 1
+        stats = _EpochStats.zeros(len(params[0]), dev)
+        for vi in rng.permutation(len(targets)):
+            total = _train_view(params, opt, targets[vi], it, sched, extra_loss, stats)
             it += 1
             if bar is not None:
                 bar.update(1)
-                loss_value = float(total.detach()) if torch.is_tensor(total) else float("nan" if total is None else total)
-                bar.set_postfix(loss=f"{loss_value:.4f}", planes=K)
-        # once per epoch: prune and split (the index map carries the Adam moments along)
-        radii_grad = gsum / gcnt.clamp(min=1)[:, None]
-        seen_g = radii_grad[gcnt > 0].max(1).values
-        if len(seen_g):
-            q = torch.quantile(seen_g.float(), torch.tensor([0.5, 0.9, 0.99], device=dev)).tolist()
-            hist.setdefault("radii_grad_q50_q90_q99", []).append([round(x, 4) for x in q])
-        do_split = conf.split and it <= split_stop and epoch < conf.epochs - 1
-        current = Planes(*(p.detach() for p in params))
-        new, imap = prune_and_split(
-            current,
-            seen=seen if conf.prune_unseen else None,
-            radii_grad=radii_grad if do_split else None,
-            min_radius=conf.prune_min_radius,
-            split_threshold=conf.split_grad_threshold if do_split else None,
-            split_into_four=conf.split_into_four,
-            max_planes=conf.max_planes,
-        )
-        if len(new) == 0:
-            logger.warning("pruning would remove every plane; keeping the current set")
-            new, imap = prune_and_split(current, min_radius=0.0, split_threshold=None)
-        params_new = [t.clone().requires_grad_(True) for t in new.tensors()]
-        opt = _make_optimizer(params_new, conf, old=opt, parent=imap.parent)
-        params = params_new
+                bar.set_postfix(loss=f"{float('nan') if total is None else float(total.detach()):.4f}", planes=len(params[0]))
+        params, opt, imap = _restructure(params, opt, stats, epoch, it, sched, hist)
         if on_restructure:
             on_restructure(imap)
-        n = max(n_used, 1)
-        hist["loss"].append(sums["loss"] / n)
-        hist["depth"].append(sums["depth"] / n)
-        hist["normal"].append(sums["normal"] / n)
-        hist["planes"].append(len(new))
-        hist["pruned"].append(imap.n_pruned)
-        hist["unseen"].append(imap.n_unseen)
-        hist["split"].append(imap.n_split)
-        hist["lambda"].append(lambda_schedule(it - 1, max_iters, conf.lambda_min, conf.lambda_max))
-        hist["seconds"].append(time.time() - t0)
-        hist["skipped"].append(skipped)
-        logger.debug(
-            "epoch %d: loss %.4f depth %.4f normal %.4f planes %d (-%d, split %d)",
-            epoch, hist["loss"][-1], hist["depth"][-1], hist["normal"][-1], len(new), imap.n_pruned, imap.n_split,
-        )
+        _record_epoch(hist, stats, imap, len(params[0]), sched.lam(it - 1), time.time() - t0, epoch)
     if bar is not None:
         bar.close()
     return Planes(*(p.detach() for p in params)), hist
 
 
+def _progress_bar(conf: PlaneOptConfig, total: int):
+    if not conf.progress:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc="planes", unit="it", leave=False)
+
+
 # ------------------------------------------------------------------------------------------------
 # pipeline step
 # ------------------------------------------------------------------------------------------------
-def fit_planes(scene, out_dir, conf: Optional[PlaneOptConfig] = None, overwrite: bool = False) -> Path:
+def planes_stamp(scene, conf: PlaneOptConfig, extra: Optional[dict] = None):
+    """The :class:`~lipmap.artifacts.Stamp` of ``planes.h5``: the settings, the mapping views and ``extra``
+    (what else shapes the planes, e.g. the line term and its 2D lines)."""
+    from ..artifacts import Stamp, scene_key
+
+    settings = {k: v for k, v in conf.to_dict().items() if k not in ("progress", "device", "name")}
+    return Stamp("planes", {"planes": settings, "scene": scene_key(scene), **(extra or {})})
+
+
+def fit_planes(scene, out_dir, conf: Optional[PlaneOptConfig] = None, extra_loss: Optional[ExtraLoss] = None,
+               stamp_extra: Optional[dict] = None, overwrite: bool = False) -> Path:
     """Initialize and optimize planes on ``scene.mapping``; write ``planes.h5`` and ``planes.ply``.
 
-    Skips the work when ``out_dir/planes.h5`` exists unless ``overwrite``. Returns the .h5 path.
+    Args:
+        extra_loss: added to the plane loss (see :func:`optimize_planes`); the mapping passes the line term.
+        stamp_extra: settings of ``extra_loss`` recorded in the stamp (see :func:`planes_stamp`).
+
+    Reuses ``out_dir/planes.h5`` when the same settings made it (:func:`lipmap.artifacts.reuse`).
+    Returns the .h5 path.
     """
+    from ..artifacts import reuse
+
     conf = conf or PlaneOptConfig.preset("fast")
-    out_dir = Path(out_dir)
-    path = out_dir / "planes.h5"
-    if path.exists() and not overwrite:
-        logger.info("Skipping plane fitting: %s exists (overwrite=False)", path)
+    path = Path(out_dir) / "planes.h5"
+    stamp = planes_stamp(scene, conf, stamp_extra)
+    if reuse(path, stamp, overwrite, "plane optimization"):
         return path
     logger.info("fitting planes on %s/%s (%d mapping views), preset %s", scene.dataset, scene.name, len(scene.mapping), conf.name)
-    dev = _device(conf)
+    dev = select_device(conf)
     t0 = time.time()
     frames = depth_frames(scene.mapping)  # loaded once, full resolution
     if not frames:
@@ -529,35 +600,14 @@ def fit_planes(scene, out_dir, conf: Optional[PlaneOptConfig] = None, overwrite:
     planes = init_planes(None, conf.init, device=dev, frames=downscale_frames(frames, conf.init.depth_downscale, conf.init.target_width))
     t_init = time.time() - t0
     targets = prepare_targets(frames, conf, device=dev)
-    planes, hist = optimize_planes(targets, planes, conf)
+    planes, hist = optimize_planes(targets, planes, conf, extra_loss=extra_loss)
     hist["init_seconds"] = t_init
     hist["total_seconds"] = time.time() - t0
-    save_planes(path, planes, attrs={"config": conf.to_dict(), "history": hist, "scene": scene.name, "dataset": scene.dataset})
-    export_planes_ply(out_dir / "planes.ply", planes)
+    save_planes(path, planes, attrs={"config": conf.to_dict(), "history": hist, "scene": scene.name, "dataset": scene.dataset},
+                stamp=stamp)
+    export_planes_ply(Path(out_dir) / "planes.ply", planes)
     logger.info(
         "planes: %d after %d epochs, final loss %.4f, %.1f s (init %.1f s) -> %s",
         len(planes), conf.epochs, hist["loss"][-1] if hist["loss"] else float("nan"), hist["total_seconds"], t_init, path,
     )
     return path
-
-
-def add_fit_planes_parser(subparsers):
-    """``fit-planes`` subcommand (wired by the CLI owner)."""
-    p = subparsers.add_parser("fit-planes", help="initialize and optimize planar primitives for a scene")
-    p.add_argument("--dataset", default="synthetic")
-    p.add_argument("--root", required=True)
-    p.add_argument("--scene", required=True)
-    p.add_argument("--out", required=True, help="output folder for planes.h5 / planes.ply")
-    p.add_argument("--preset", default="fast", choices=list(confs))
-    p.add_argument("--epochs", type=int, default=None)
-    p.add_argument("--overwrite", action="store_true")
-    p.set_defaults(func=cli_fit_planes)
-    return p
-
-
-def cli_fit_planes(args) -> Path:
-    from ..datasets import load_scene
-
-    scene = load_scene(args.dataset, args.root, args.scene)
-    over = {} if args.epochs is None else {"epochs": args.epochs}
-    return fit_planes(scene, args.out, PlaneOptConfig.preset(args.preset, **over), overwrite=args.overwrite)

@@ -11,7 +11,6 @@ v1 = p + x+ X + y+ Y,  v2 = p + x+ X - y- Y,  v3 = p - x- X - y- Y,  v4 = p - x-
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import numpy as np
 import torch
