@@ -158,6 +158,27 @@ def lift_view_lines(lines2d: np.ndarray, depth: np.ndarray, camera, conf: Union[
     ok = np.zeros(N, dtype=bool)
     if N == 0:
         return out, ok
+    t, uv, normal2 = _sample_along_lines(L, conf)
+    offsets, depths = _depth_profiles(depth, uv, normal2, conf)
+    fx, fy, cx, cy = camera.params
+    end_rays = _rays_z1(L.reshape(N, 2, 2), camera.params)  # (N, 2, 3), z = 1
+    end_xy = np.stack([(L[:, [0, 2]] - cx) / fx, (L[:, [1, 3]] - cy) / fy], -1)  # (N, 2, 2) normalised
+    for i in range(N):
+        profiles = [d[i] for d in depths]
+        cands = _profile_candidates(t[i], uv[i], normal2[i], profiles, offsets, end_xy[i], camera.params, conf)
+        best = _choose_profile(cands, profiles, conf)
+        if best is None:
+            continue
+        seg = _segment_on_end_rays(best[1], end_rays[i], conf)
+        if seg is None:
+            continue
+        out[i] = seg
+        ok[i] = True
+    return out, ok
+
+
+def _sample_along_lines(L: np.ndarray, conf: LiftConf):
+    """Sample parameters t (N, n) and points uv (N, n, 2) inside each segment's end margins, and its 2D normal (N, 2)."""
     p0, p1 = L[:, :2], L[:, 2:]
     length = np.linalg.norm(p1 - p0, axis=1)
     dir2 = (p1 - p0) / np.maximum(length, 1e-9)[:, None]
@@ -165,64 +186,80 @@ def lift_view_lines(lines2d: np.ndarray, depth: np.ndarray, camera, conf: Union[
     margin = np.minimum(conf.end_margin_px, 0.1 * length) / np.maximum(length, 1e-9)
     t = margin[:, None] + (1 - 2 * margin[:, None]) * np.linspace(0.0, 1.0, conf.n_samples)[None]
     uv = p0[:, None] + t[..., None] * (p1 - p0)[:, None]  # (N, n, 2)
-    fx, fy, cx, cy = camera.params
+    return t, uv, normal2
 
-    def rays_of(q):
-        return np.stack([(q[..., 0] - cx) / fx, (q[..., 1] - cy) / fy, np.ones(q.shape[:-1])], -1)
 
-    end_rays = rays_of(L.reshape(N, 2, 2))  # (N, 2, 3), z = 1
-    cos_max = np.cos(np.deg2rad(conf.min_ray_angle_deg))
+def _depth_profiles(depth: np.ndarray, uv: np.ndarray, normal2: np.ndarray, conf: LiftConf):
+    """The profile offsets and the window-median depth profiles (5 arrays (N, n)) on and beside each line."""
     # profile k: offset (in side_offset units) along the 2D normal: 0 = on the line, +-1 near, +-2 far
     offsets = (0.0, -1.0, -2.0, 1.0, 2.0)
     depths = [
         _window_median(depth, uv + o * conf.side_offset * normal2[:, None], conf.window if o == 0 else conf.side_window)
         for o in offsets
     ]
+    return offsets, depths
+
+
+def _rays_z1(q: np.ndarray, params) -> np.ndarray:
+    """Camera rays with z = 1 through pixel positions q (..., 2), COLMAP convention."""
+    fx, fy, cx, cy = params
+    return np.stack([(q[..., 0] - cx) / fx, (q[..., 1] - cy) / fy, np.ones(q.shape[:-1])], -1)
+
+
+def _profile_candidates(t, uv, normal2, profiles, offsets, end_xy, params, conf: LiftConf) -> list:
+    """One line's usable depth profiles as (mean depth, inverse depth at the 2 endpoints, "center" | "side")."""
+    fx, fy, cx, cy = params
     ones = np.ones(conf.n_samples)
-    end_xy = np.stack([(L[:, [0, 2]] - cx) / fx, (L[:, [1, 3]] - cy) / fy], -1)  # (N, 2, 2) normalised
-    for i in range(N):
-        cands = []  # (mean depth, inverse depth at the 2 endpoints, kind)
-        f = _fit_inverse_depth(np.stack([ones, t[i]], 1), depths[0][i], conf)
-        if f is not None:
-            cands.append((f[1], f[0][0] + f[0][1] * np.array([0.0, 1.0]), "center"))
-        for near, far in ((1, 2), (3, 4)):
-            # a plane's inverse depth is affine in the normalised image coordinates
-            pts = np.concatenate([uv[i] + offsets[k] * conf.side_offset * normal2[i] for k in (near, far)])
-            xy = np.stack([(pts[:, 0] - cx) / fx, (pts[:, 1] - cy) / fy], 1)
-            zs = np.concatenate([depths[near][i], depths[far][i]])
-            A1 = np.stack([ones, t[i]], 1)
-            if any(_fit_inverse_depth(A1, depths[k][i], conf) is None for k in (near, far)):
-                continue  # each strip on its own must be one continuous straight profile
-            fp = _fit_inverse_depth(np.column_stack([np.ones(len(xy)), xy]), zs, conf, check_jumps=False)
-            if fp is not None:
-                cands.append((fp[1], fp[0][0] + end_xy[i] @ fp[0][1:], "side"))
-        if not cands:
-            continue
-        # on-line profile unless a side surface is clearly nearer: then the line is that
-        # surface's occluding edge and the on-line depth saw the background through it
-        best = cands[0]
-        nearest = min(cands, key=lambda c: c[0])
-        if best[2] != "center" or nearest[0] < best[0] - max(conf.jump_abs, conf.jump_rel * best[0]):
-            best = nearest
-        # a surface nearer than the chosen one right next to the line (that could not be fitted)
-        # means the chosen one is the background seen past an occluding edge: no reliable depth
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            evidence = np.nanmin([np.nanmedian(depths[k][i]) for k in (0, 1, 3)])
-        if np.isfinite(evidence) and evidence < best[0] - max(conf.jump_abs, conf.jump_rel * best[0]):
-            continue
-        inv = best[1]
-        if np.any(inv <= 1.0 / conf.max_depth):
-            continue
-        seg = end_rays[i] / inv[:, None]
-        # a line seen almost end-on has ill-defined endpoints
-        dvec = seg[1] - seg[0]
-        ln = np.linalg.norm(dvec)
-        if ln < conf.min_length_3d or abs(seg.mean(0) @ dvec) / (np.linalg.norm(seg.mean(0)) * ln) > cos_max:
-            continue
-        out[i] = seg
-        ok[i] = True
-    return out, ok
+    cands = []
+    f = _fit_inverse_depth(np.stack([ones, t], 1), profiles[0], conf)
+    if f is not None:
+        cands.append((f[1], f[0][0] + f[0][1] * np.array([0.0, 1.0]), "center"))
+    for near, far in ((1, 2), (3, 4)):
+        # a plane's inverse depth is affine in the normalised image coordinates
+        pts = np.concatenate([uv + offsets[k] * conf.side_offset * normal2 for k in (near, far)])
+        xy = np.stack([(pts[:, 0] - cx) / fx, (pts[:, 1] - cy) / fy], 1)
+        zs = np.concatenate([profiles[near], profiles[far]])
+        A1 = np.stack([ones, t], 1)
+        if any(_fit_inverse_depth(A1, profiles[k], conf) is None for k in (near, far)):
+            continue  # each strip on its own must be one continuous straight profile
+        fp = _fit_inverse_depth(np.column_stack([np.ones(len(xy)), xy]), zs, conf, check_jumps=False)
+        if fp is not None:
+            cands.append((fp[1], fp[0][0] + end_xy @ fp[0][1:], "side"))
+    return cands
+
+
+def _choose_profile(cands: list, profiles: list, conf: LiftConf):
+    """The candidate whose depth the line takes, or None (no candidate, or only background behind an edge)."""
+    if not cands:
+        return None
+    # on-line profile unless a side surface is clearly nearer: then the line is that
+    # surface's occluding edge and the on-line depth saw the background through it
+    best = cands[0]
+    nearest = min(cands, key=lambda c: c[0])
+    if best[2] != "center" or nearest[0] < best[0] - max(conf.jump_abs, conf.jump_rel * best[0]):
+        best = nearest
+    # a surface nearer than the chosen one right next to the line (that could not be fitted)
+    # means the chosen one is the background seen past an occluding edge: no reliable depth
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        evidence = np.nanmin([np.nanmedian(profiles[k]) for k in (0, 1, 3)])
+    if np.isfinite(evidence) and evidence < best[0] - max(conf.jump_abs, conf.jump_rel * best[0]):
+        return None
+    return best
+
+
+def _segment_on_end_rays(inv: np.ndarray, end_rays: np.ndarray, conf: LiftConf):
+    """The 3D segment (2, 3) at inverse depths ``inv`` on the endpoint rays; None if too far, too short or end-on."""
+    if np.any(inv <= 1.0 / conf.max_depth):
+        return None
+    seg = end_rays / inv[:, None]
+    # a line seen almost end-on has ill-defined endpoints
+    cos_max = np.cos(np.deg2rad(conf.min_ray_angle_deg))
+    dvec = seg[1] - seg[0]
+    ln = np.linalg.norm(dvec)
+    if ln < conf.min_length_3d or abs(seg.mean(0) @ dvec) / (np.linalg.norm(seg.mean(0)) * ln) > cos_max:
+        return None
+    return seg
 
 
 # ----------------------------------------------------------------------------------------------

@@ -441,15 +441,18 @@ def triangulate_map(
     Returns:
         ``sfm_dir``; skipped when it already holds a model, unless ``overwrite``.
     """
-    import shutil
-
-    import pycolmap
-
     conf = conf or TriangulationConf()
     sfm_dir = Path(sfm_dir)
     if not overwrite and (sfm_dir / "points3D.bin").exists() and (sfm_dir / "images.bin").exists():
         logger.info("Skipping triangulation: %s exists.", sfm_dir)
         return sfm_dir
+    unique_pairs = _unique_pairs(_checked_pairs(mapping_views, pairs))
+    _triangulate_atomically(sfm_dir, mapping_views, features_h5, unique_pairs, matches_h5, conf)
+    return sfm_dir
+
+
+def _checked_pairs(mapping_views: Sequence, pairs) -> list:
+    """The pairs as tuples (read from a pairs file or given); InputError if they name an unknown or unposed view."""
     pairs_path = Path(pairs) if isinstance(pairs, (str, Path)) else None
     pairs = hloc_io.read_pairs(pairs_path) if pairs_path is not None else [tuple(p) for p in pairs]
     by_name = {v.name: v for v in mapping_views}
@@ -460,12 +463,23 @@ def triangulate_map(
     for v in mapping_views:
         if v.cam_from_world is None:
             raise InputError(f"mapping view {v.name} has no pose; triangulation needs known poses")
+    return pairs
 
+
+def _unique_pairs(pairs: list) -> list:
+    """The pairs in order without self-pairs and repeats in either order."""
     seen, unique_pairs = set(), []
     for a, b in pairs:  # a pair listed twice (or reversed) would violate the database's unique key
         if a != b and (a, b) not in seen and (b, a) not in seen:
             seen.add((a, b))
             unique_pairs.append((a, b))
+    return unique_pairs
+
+
+def _triangulate_atomically(sfm_dir: Path, mapping_views: Sequence, features_h5, pairs: list, matches_h5,
+                            conf: TriangulationConf):
+    """Triangulate in a temporary folder renamed to ``sfm_dir`` at the end (never a partial model); log the model."""
+    import shutil
 
     tmp = sfm_dir.parent / f".{sfm_dir.name}.tmp"
     if tmp.exists():
@@ -473,28 +487,7 @@ def triangulate_map(
     tmp.mkdir(parents=True)
     t0 = time.time()
     try:
-        rec = _reconstruction_and_database(mapping_views, features_h5, unique_pairs, matches_h5, tmp / "database.db", conf)
-        opts = pycolmap.IncrementalPipelineOptions()
-        opts.extract_colors = False  # COLMAP 4.2's point_triangulator reads colours anyway; .jpg vs .png names only warn
-        opts.random_seed = conf.seed
-        opts.num_threads = conf.num_threads
-        opts.ba_refine_focal_length = False
-        opts.ba_refine_principal_point = False
-        opts.ba_refine_extra_params = False
-        tri = opts.triangulation
-        tri.min_angle = conf.min_angle_deg
-        tri.complete_max_reproj_error = conf.max_reproj_error
-        tri.merge_max_reproj_error = conf.max_reproj_error
-        tri.ignore_two_view_tracks = conf.ignore_two_view_tracks
-        tri.random_seed = conf.seed
-        pycolmap.set_random_seed(conf.seed)
-        model_dir = tmp / "model"
-        model_dir.mkdir()
-        with colmap_quiet():
-            rec = pycolmap.triangulate_points(rec, tmp / "database.db", tmp, model_dir, clear_points=True, options=opts)
-        for f in model_dir.iterdir():
-            f.rename(tmp / f.name)
-        model_dir.rmdir()
+        rec = _triangulate_into(tmp, mapping_views, features_h5, pairs, matches_h5, conf)
         if sfm_dir.exists():
             shutil.rmtree(sfm_dir)
         tmp.rename(sfm_dir)
@@ -508,7 +501,45 @@ def triangulate_map(
         rec.compute_mean_reprojection_error() if rec.num_points3D() else 0.0,
         time.time() - t0,
     )
-    return sfm_dir
+
+
+def _triangulation_options(conf: TriangulationConf):
+    """COLMAP's triangulator options from ``conf``, with the intrinsics held fixed."""
+    import pycolmap
+
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.extract_colors = False  # COLMAP 4.2's point_triangulator reads colours anyway; .jpg vs .png names only warn
+    opts.random_seed = conf.seed
+    opts.num_threads = conf.num_threads
+    opts.ba_refine_focal_length = False
+    opts.ba_refine_principal_point = False
+    opts.ba_refine_extra_params = False
+    tri = opts.triangulation
+    tri.min_angle = conf.min_angle_deg
+    tri.complete_max_reproj_error = conf.max_reproj_error
+    tri.merge_max_reproj_error = conf.max_reproj_error
+    tri.ignore_two_view_tracks = conf.ignore_two_view_tracks
+    tri.random_seed = conf.seed
+    return opts
+
+
+def _triangulate_into(tmp: Path, mapping_views: Sequence, features_h5, pairs: list, matches_h5,
+                      conf: TriangulationConf):
+    """Write the database and the triangulated model's files into ``tmp``; returns the model."""
+    import pycolmap
+
+    rec = _reconstruction_and_database(mapping_views, features_h5, pairs, matches_h5, tmp / "database.db", conf)
+    opts = _triangulation_options(conf)
+    pycolmap.set_random_seed(conf.seed)
+    model_dir = tmp / "model"
+    model_dir.mkdir()
+    with colmap_quiet():
+        rec = pycolmap.triangulate_points(rec, tmp / "database.db", tmp, model_dir, clear_points=True, options=opts)
+    # hloc's layout: the model files beside database.db
+    for f in model_dir.iterdir():
+        f.rename(tmp / f.name)
+    model_dir.rmdir()
+    return rec
 
 
 def _reconstruction_and_database(mapping_views, features_h5, pairs, matches_h5, db_path, conf: TriangulationConf):

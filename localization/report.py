@@ -380,9 +380,6 @@ def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples:
         root: dataset root for the query / mapping images (see the module docstring).
         n_examples: query overlays per kind (largest improvements, largest point+line errors).
     """
-    from lipmap import viz
-    from lipmap.linemap import LineMap
-
     if dataset is None:
         out_root, dataset = detect_dataset(out_root)
     out = Path(out_root) / dataset
@@ -390,17 +387,38 @@ def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples:
         raise InputError("no results for this dataset here (run `lipmap-loc eval` first)", out)
     rep = out / "report"
     rep.mkdir(parents=True, exist_ok=True)
-    all_path = out / "results.json"
-    all_res = json.loads(all_path.read_text()) if all_path.exists() else {}
-    names = list(all_res.get("scenes", {})) or sorted(p.name for p in out.iterdir() if (p / "results.json").exists())
-    if not names:
-        raise InputError("no scene results (<scene>/results.json) here", out)
-    runs = {n: load_scene_run(out / n) for n in names}
+    all_res, runs = _load_runs(out)
     summaries = {n: all_res.get("scenes", {}).get(n) or r.results.get("summary", {}) for n, r in runs.items()}
     n_q = {n: len(r.queries) for n, r in runs.items()}
     paper = ev.load_paper_table()
     notes = []
 
+    md = _overview_md(dataset, out, runs, summaries, n_q, paper)
+    bars, md_acc = _accuracy_section(summaries, rep, paper, n_q, list(runs))
+    cdfs, md_cdf = _cdf_section(runs, rep, notes)
+    md_q, md_m = _image_sections(out, dataset, all_res, runs, root, rep, n_examples, notes)
+    md += md_acc + md_cdf + md_q + md_m
+    if notes:
+        md += ["## Notes", ""] + [f"- {x}" for x in notes] + [""]
+    report = rep / "report.md"
+    write_text_atomic(report, "\n".join(md))
+    _refresh_summary_links(out / "summary.md", rep, bars, cdfs)
+    logger.info("Report: %s", report)
+    return report
+
+
+def _load_runs(out: Path) -> tuple[dict, dict]:
+    """The dataset's results.json ({} if absent) and every scene's run, in the results' scene order."""
+    all_path = out / "results.json"
+    all_res = json.loads(all_path.read_text()) if all_path.exists() else {}
+    names = list(all_res.get("scenes", {})) or sorted(p.name for p in out.iterdir() if (p / "results.json").exists())
+    if not names:
+        raise InputError("no scene results (<scene>/results.json) here", out)
+    return all_res, {n: load_scene_run(out / n) for n in names}
+
+
+def _overview_md(dataset: str, out: Path, runs: dict, summaries: dict, n_q: dict, paper: dict) -> list:
+    """Title, provenance and the per-scene table of ours beside the paper's LiP-Map row."""
     md = [f"# Localization report ({dataset})", "",
           f"Made from the artifacts in `{out}` (results.json, per-query journals, line maps); no pose was "
           "recomputed. Errors: translation = distance between camera centres, rotation = angle of "
@@ -415,21 +433,27 @@ def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples:
         md.append(f"| {n} | {n_q[n]} | {r.results.get('n_map_lines', '?')} lines ({method}) | {ev.format_summary(s.get('point'))} "
                   f"| {ev.format_summary(s.get('point+line'))} | {pcell} |")
     md += ["", "Cells: median translation (cm) / median rotation (deg) / % within 5 cm and 5°.", ""]
+    return md
 
-    # accuracy bars
+
+def _accuracy_section(summaries: dict, rep: Path, paper: dict, n_q: dict, names: list) -> tuple[Path, list]:
+    """Plot the 5 cm / 5° bars; returns the PNG and its report section."""
     bars = plot_accuracy_bars(summaries, rep / "accuracy_5cm5deg.png", paper, n_q)
     missing = [n for n in names if n.lower() not in paper["scenes"]]
-    md += ["## Accuracy at 5 cm / 5°", "",
-           "Ours (blue: point only, orange: point+line) beside every row of the paper's 7-Scenes table (grey: "
-           "matching-based, hatched green: learning-based). The paper used the full test sequences and hloc "
-           "SuperPoint+SuperGlue points, so compare trends, not absolute numbers."
-           + (f" Not in the paper's table (no paper bars): {', '.join(missing)}." if missing else ""), "",
-           f"![accuracy at 5 cm / 5 deg]({bars.name})", ""]
+    md = ["## Accuracy at 5 cm / 5°", "",
+          "Ours (blue: point only, orange: point+line) beside every row of the paper's 7-Scenes table (grey: "
+          "matching-based, hatched green: learning-based). The paper used the full test sequences and hloc "
+          "SuperPoint+SuperGlue points, so compare trends, not absolute numbers."
+          + (f" Not in the paper's table (no paper bars): {', '.join(missing)}." if missing else ""), "",
+          f"![accuracy at 5 cm / 5 deg]({bars.name})", ""]
+    return bars, md
 
-    # error distributions
-    md += ["## Error distributions", "",
-           "Share of queries localized better than a given error (log x axis); the dashed line marks 5 cm / 5°. "
-           "A curve that ends below 100 % has failed queries.", ""]
+
+def _cdf_section(runs: dict, rep: Path, notes: list) -> tuple[dict, list]:
+    """Plot each scene's error CDFs; returns {scene: PNG} and the report section."""
+    md = ["## Error distributions", "",
+          "Share of queries localized better than a given error (log x axis); the dashed line marks 5 cm / 5°. "
+          "A curve that ends below 100 % has failed queries.", ""]
     cdfs = {}
     for n, r in runs.items():
         if not r.queries:
@@ -437,8 +461,12 @@ def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples:
             continue
         cdfs[n] = plot_error_cdfs(r, rep / f"cdf_{_slug(n)}.png")
         md += [f"### {n}", "", f"![error distributions of {n}]({cdfs[n].name})", ""]
+    return cdfs, md
 
-    # query overlays and line-map renders need the dataset's images
+
+def _image_sections(out: Path, dataset: str, all_res: dict, runs: dict, root, rep: Path, n_examples: int,
+                    notes: list) -> tuple[list, list]:
+    """The query-example and line-map sections, made together because both need each scene's line map."""
     md_q = ["## Query examples", "",
             f"For the {n_examples} queries whose translation error improved most with lines, then the "
             f"{n_examples} largest point+line translation errors: the query image with its detected 2D lines "
@@ -451,72 +479,98 @@ def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples:
             "Planar mesh (lipmap maps): ray-cast from the same mapping view and from the overview camera, "
             "coloured by normal.", ""]
     for n, r in runs.items():
-        lm_path = r.folder / "linemap.h5"
-        lm = None
-        try:
-            lm = LineMap.load(lm_path)
-        except InputError as e:
-            notes.append(f"{n}: no line map ({e}); no overlays or map renders.")
-        droot = _dataset_root(out, dataset, all_res, r, root)
-        scene = None
-        if droot is None:
-            notes.append(f"{n}: dataset root unknown (pass `--root`), so no query overlays and no mapping-view renders.")
-        else:
-            try:
-                scene = _load_scene(dataset, droot, r)
-            except InputError as e:
-                notes.append(f"{n}: cannot load the scene from {droot} ({e}); no query overlays.")
-        # line map renders (overview works without the scene)
+        lm = _load_linemap_or_note(n, r, notes)
+        scene = _load_dataset_scene_or_note(out, dataset, all_res, n, r, root, notes)
+        # the overview render works without the scene
         if lm is not None:
-            try:
-                written = viz.render_linemap_views(lm, scene, rep, f"linemap_{_slug(n)}.png", f"planes_{_slug(n)}.png",
-                                                   map_dir=r.folder)
-            except Exception as e:  # noqa: BLE001 - one bad render must not lose the report
-                logger.warning("Line map render of %s failed: %s", n, e)
-                notes.append(f"{n}: line map render failed ({e}).")
-                written = []
-            md_m += [f"### {n}", "", f"{len(lm)} lines, method `{lm.metadata.get('method', '?')}`."
-                     + ("" if any("planes_" in p.name for p in written) else " This map has no planes (no planes.ply), so no planar mesh render."), ""]
-            md_m += [f"![{p.stem}]({p.name})" for p in written] + [""]
+            md_m += _linemap_md(n, r, lm, scene, rep, notes)
         if lm is None or scene is None:
             continue
-        ex = select_examples(r, n_examples)
-        if not ex:
-            notes.append(f"{n}: no query has both a point-only and a point+line pose; no overlays.")
-            continue
-        lq = None
-        if viz.linemap_corners(lm, r.folder) is not None:
-            from lipmap.mapping.assign import LineVisibility
+        md_q += _query_examples_md(n, r, lm, scene, rep, n_examples, notes)
+    return md_q, md_m
 
-            lq = LineVisibility(lm.lines, viz.linemap_corners(lm, r.folder))
-        md_q += [f"### {n}", "", "| example | query | point only | point+line | line inliers |", "|---|---|---|---|---|"]
-        imgs = []
-        for kind, rank, q in ex:
-            try:
-                view = scene.view(q)
-            except KeyError:
-                notes.append(f"{n}: query {q} is not in the loaded scene; overlay skipped.")
-                continue
-            try:
-                p = plot_query_overlay(r, q, view, lm, rep / f"query_{_slug(n)}_{kind}{rank}.png", lq, kind, rank)
-            except Exception as e:  # noqa: BLE001 - one bad overlay must not lose the report
-                logger.warning("Overlay of %s failed: %s", q, e)
-                notes.append(f"{n}: overlay of {q} failed ({e}).")
-                continue
-            rec = r.queries[q]
-            what = "largest improvement" if kind == "improved" else "largest point+line error"
-            md_q.append(f"| {what} #{rank} | `{q}` | {_fmt_err(rec['point'])} | {_fmt_err(rec['point+line'])} "
-                        f"| {rec['point+line'].get('n_line_inliers', '-')} |")
-            imgs.append(f"![{kind} {rank}: {q}]({p.name})")
-        md_q += [""] + [x for i in imgs for x in (i, "")]
-    md += md_q + md_m
-    if notes:
-        md += ["## Notes", ""] + [f"- {x}" for x in notes] + [""]
-    report = rep / "report.md"
-    write_text_atomic(report, "\n".join(md))
-    _refresh_summary_links(out / "summary.md", rep, bars, cdfs)
-    logger.info("Report: %s", report)
-    return report
+
+def _load_linemap_or_note(n: str, r: SceneRun, notes: list):
+    """The scene's line map, or None with a note (no overlays or map renders without it)."""
+    from lipmap.linemap import LineMap
+
+    try:
+        return LineMap.load(r.folder / "linemap.h5")
+    except InputError as e:
+        notes.append(f"{n}: no line map ({e}); no overlays or map renders.")
+    return None
+
+
+def _load_dataset_scene_or_note(out: Path, dataset: str, all_res: dict, n: str, r: SceneRun, root, notes: list):
+    """The scene from the dataset root, or None with a note saying why the image figures are missing."""
+    droot = _dataset_root(out, dataset, all_res, r, root)
+    if droot is None:
+        notes.append(f"{n}: dataset root unknown (pass `--root`), so no query overlays and no mapping-view renders.")
+        return None
+    try:
+        return _load_scene(dataset, droot, r)
+    except InputError as e:
+        notes.append(f"{n}: cannot load the scene from {droot} ({e}); no query overlays.")
+    return None
+
+
+def _linemap_md(n: str, r: SceneRun, lm, scene, rep: Path, notes: list) -> list:
+    """Render the scene's line map (and planes) and return its report subsection."""
+    from lipmap import viz
+
+    try:
+        written = viz.render_linemap_views(lm, scene, rep, f"linemap_{_slug(n)}.png", f"planes_{_slug(n)}.png",
+                                           map_dir=r.folder)
+    except Exception as e:  # noqa: BLE001 - one bad render must not lose the report
+        logger.warning("Line map render of %s failed: %s", n, e)
+        notes.append(f"{n}: line map render failed ({e}).")
+        written = []
+    md = [f"### {n}", "", f"{len(lm)} lines, method `{lm.metadata.get('method', '?')}`."
+          + ("" if any("planes_" in p.name for p in written) else " This map has no planes (no planes.ply), so no planar mesh render."), ""]
+    return md + [f"![{p.stem}]({p.name})" for p in written] + [""]
+
+
+def _query_examples_md(n: str, r: SceneRun, lm, scene, rep: Path, n_examples: int, notes: list) -> list:
+    """Overlay the scene's example queries; returns its report subsection ([] without examples)."""
+    from lipmap import viz
+
+    ex = select_examples(r, n_examples)
+    if not ex:
+        notes.append(f"{n}: no query has both a point-only and a point+line pose; no overlays.")
+        return []
+    lq = None
+    if viz.linemap_corners(lm, r.folder) is not None:
+        from lipmap.mapping.assign import LineVisibility
+
+        lq = LineVisibility(lm.lines, viz.linemap_corners(lm, r.folder))
+    md = [f"### {n}", "", "| example | query | point only | point+line | line inliers |", "|---|---|---|---|---|"]
+    imgs = []
+    for kind, rank, q in ex:
+        p = _overlay_or_note(n, r, q, kind, rank, scene, lm, lq, rep, notes)
+        if p is None:
+            continue
+        rec = r.queries[q]
+        what = "largest improvement" if kind == "improved" else "largest point+line error"
+        md.append(f"| {what} #{rank} | `{q}` | {_fmt_err(rec['point'])} | {_fmt_err(rec['point+line'])} "
+                  f"| {rec['point+line'].get('n_line_inliers', '-')} |")
+        imgs.append(f"![{kind} {rank}: {q}]({p.name})")
+    return md + [""] + [x for i in imgs for x in (i, "")]
+
+
+def _overlay_or_note(n: str, r: SceneRun, q: str, kind: str, rank: int, scene, lm, lq, rep: Path,
+                     notes: list) -> Optional[Path]:
+    """Plot one query overlay; None with a note when the query or the plot fails."""
+    try:
+        view = scene.view(q)
+    except KeyError:
+        notes.append(f"{n}: query {q} is not in the loaded scene; overlay skipped.")
+        return None
+    try:
+        return plot_query_overlay(r, q, view, lm, rep / f"query_{_slug(n)}_{kind}{rank}.png", lq, kind, rank)
+    except Exception as e:  # noqa: BLE001 - one bad overlay must not lose the report
+        logger.warning("Overlay of %s failed: %s", q, e)
+        notes.append(f"{n}: overlay of {q} failed ({e}).")
+    return None
 
 
 def _refresh_summary_links(summary: Path, rep: Path, bars: Path, cdfs: dict):

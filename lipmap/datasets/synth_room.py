@@ -221,13 +221,22 @@ def build_room(rng: np.random.Generator) -> Room:
     Lx = round(float(rng.uniform(4.0, 6.0)), 2)
     Ly = round(float(rng.uniform(3.0, 5.0)), 2)
     H = round(float(rng.uniform(2.6, 3.0)), 2)
-    walls = _walls(Lx, Ly)
-    room = Room((Lx, Ly, H), walls)
+    room = Room((Lx, Ly, H), _walls(Lx, Ly))
     occ = _Occupancy()
     # the free floor between opposite walls must keep >= 1.9 m so the camera loop fits
     budget = [min(0.8, (Ly - 1.9) / 2), min(0.8, (Lx - 1.9) / 2)] * 2
+    wall_mats = _add_shell(room, rng)
+    # drawn before the door: the door, window and baseboard frames share this one trim colour
+    frame_mat = Material("plain", _rgb(rng, 0.85, 0.98))
+    door_span = _add_door(room, occ, frame_mat, rng)
+    _add_windows(room, occ, frame_mat, rng)
+    _add_furniture(room, occ, budget, rng)
+    _add_wall_trim(room, occ, wall_mats, door_span, frame_mat, rng)
+    return room
 
-    # ---- shell --------------------------------------------------------------------------------------------
+
+def _wall_materials(walls, rng) -> list:
+    """One material per wall: one wall plain paint, the others tiles (20 %) or plaster."""
     plain_wall = int(rng.integers(0, 4))
     wall_mats = []
     for w in walls:
@@ -239,21 +248,35 @@ def build_room(rng: np.random.Generator) -> Room:
                                       {"tile": float(rng.uniform(0.15, 0.3)), "grout": 0.004, "contrast": 0.15}))
         else:
             wall_mats.append(_plaster_mat(rng))
-    for w, m in zip(walls, wall_mats):
+    return wall_mats
+
+
+def _ceiling_mat(rng) -> Material:
+    """Ceiling tiles (60 %) or plain bright paint."""
+    if rng.random() < 0.6:
+        return Material("tiles", _rgb(rng, 0.8, 0.95), _rgb(rng, 0.4, 0.6),
+                        {"tile": 0.6, "grout": 0.015, "contrast": 0.25})
+    return Material("plain", _rgb(rng, 0.85, 0.97))
+
+
+def _add_shell(room: Room, rng) -> list:
+    """Add the walls, floor and ceiling; returns the wall materials (the trim pass needs them)."""
+    Lx, Ly, H = room.size
+    wall_mats = _wall_materials(room.walls, rng)
+    for w, m in zip(room.walls, wall_mats):
         obj = room.new_object()
         # from the top corner: u along the wall, v down, so u x v = the inward normal (the visible side)
         room.add_quad(w.origin + H * Z_UP, w.along, -Z_UP, w.length, H, m, obj, "wall")
     room.add_quad((0, 0, 0), (1, 0, 0), (0, 1, 0), Lx, Ly, _floor_mat(rng), room.new_object(), "floor")
-    if rng.random() < 0.6:
-        ceil = Material("tiles", _rgb(rng, 0.8, 0.95), _rgb(rng, 0.4, 0.6),
-                        {"tile": 0.6, "grout": 0.015, "contrast": 0.25})
-    else:
-        ceil = Material("plain", _rgb(rng, 0.85, 0.97))
+    ceil = _ceiling_mat(rng)
     room.add_quad((0, 0, H), (0, 1, 0), (1, 0, 0), Ly, Lx, ceil, room.new_object(), "ceiling")
+    return wall_mats
 
-    # ---- door -----------------------------------------------------------------------------------------------
-    frame_mat = Material("plain", _rgb(rng, 0.85, 0.98))
-    dw = walls[int(rng.integers(0, 4))]
+
+def _add_door(room: Room, occ: _Occupancy, frame_mat: Material, rng) -> tuple:
+    """Add a framed door with a handle on a random wall; returns (wall index, s0, s1) of its frame."""
+    H = room.size[2]
+    dw = room.walls[int(rng.integers(0, 4))]
     door_w, door_h, fw = float(rng.uniform(0.8, 0.95)), float(rng.uniform(2.0, 2.15)), 0.07
     s0 = float(rng.uniform(0.25 + fw, dw.length - 0.25 - fw - door_w))
     leaf = _wood_mat(rng) if rng.random() < 0.5 else _plain(rng, 0.3, 0.8)
@@ -270,13 +293,16 @@ def build_room(rng: np.random.Generator) -> Room:
     room.add_wall_box(dw, hs, hs + 0.02, 1.0, 1.03, 0.012, 0.07, {"side": metal}, "handle", skip=("back",))
     occ.add(dw.index, s0 - fw - 0.15, s0 + door_w + fw + 0.15, 0.0, H, "door")
     room.blockers.append(dw.aabb(s0 - fw - 0.15, s0 + door_w + fw + 0.15, 0.0, H, 0.0, 0.9))  # the doorway
-    door_span = (dw.index, s0 - fw, s0 + door_w + fw)
+    return (dw.index, s0 - fw, s0 + door_w + fw)
 
-    # ---- windows ------------------------------------------------------------------------------------------
+
+def _add_windows(room: Room, occ: _Occupancy, frame_mat: Material, rng):
+    """Add 1-2 windows, each on a random wall where it fits (or none after 20 tries)."""
+    H = room.size[2]
     n_windows = int(rng.integers(1, 3))
     for _ in range(n_windows):
         for _try in range(20):
-            w = walls[int(rng.integers(0, 4))]
+            w = room.walls[int(rng.integers(0, 4))]
             ww, wh = float(rng.uniform(0.8, 1.5)), float(rng.uniform(1.0, 1.4))
             sill = float(rng.uniform(0.85, 1.0))
             if ww + 0.6 > w.length or sill + wh > H - 0.25:
@@ -284,29 +310,36 @@ def build_room(rng: np.random.Generator) -> Room:
             s = float(rng.uniform(0.3, w.length - 0.3 - ww))
             if not occ.free(w.index, s - 0.1, s + ww + 0.1, sill - 0.1, sill + wh + 0.1):
                 continue
-            glass = Material("plain", tuple(np.clip(np.array([0.75, 0.85, 0.95]) * rng.uniform(0.9, 1.05), 0, 1)))
-            wf = 0.06
-            room.add_wall_box(w, s, s + ww, sill, sill + wh, 0, 0.005, {"side": glass}, "window",
-                              skip=("back",))
-            mats = {"side": frame_mat}
-            room.add_wall_box(w, s - wf, s, sill, sill + wh, 0, 0.04, mats, "window_frame", skip=("back",))
-            room.add_wall_box(w, s + ww, s + ww + wf, sill, sill + wh, 0, 0.04, mats, "window_frame", skip=("back",))
-            room.add_wall_box(w, s - wf, s + ww + wf, sill + wh, sill + wh + wf, 0, 0.04, mats, "window_frame",
-                              skip=("back",))
-            room.add_wall_box(w, s - wf - 0.04, s + ww + wf + 0.04, sill - 0.03, sill, 0, 0.13, mats, "window_sill",
-                              skip=("back",))
-            mid = s + ww / 2
-            room.add_wall_box(w, mid - 0.02, mid + 0.02, sill, sill + wh, 0.005, 0.03, mats, "window_frame",
-                              skip=("back",))
-            if rng.random() < 0.5:
-                hm = sill + wh * rng.uniform(0.55, 0.7)
-                room.add_wall_box(w, s, s + ww, hm - 0.02, hm + 0.02, 0.005, 0.03, mats, "window_frame",
-                                  skip=("back",))
-            occ.add(w.index, s - wf - 0.04, s + ww + wf + 0.04, sill - 0.05, sill + wh + wf, "window")
-            room.blockers.append(w.aabb(s - wf - 0.04, s + ww + wf + 0.04, sill - 0.03, sill + wh + wf, 0.0, 0.13))
+            _add_window(room, occ, w, s, ww, wh, sill, frame_mat, rng)
             break
 
-    # ---- furniture ----------------------------------------------------------------------------------------
+
+def _add_window(room: Room, occ: _Occupancy, w: Wall, s, ww, wh, sill, frame_mat: Material, rng):
+    """Add one window (glass, frame, sill, mullion, maybe a transom) at a free spot of wall ``w``."""
+    glass = Material("plain", tuple(np.clip(np.array([0.75, 0.85, 0.95]) * rng.uniform(0.9, 1.05), 0, 1)))
+    wf = 0.06
+    room.add_wall_box(w, s, s + ww, sill, sill + wh, 0, 0.005, {"side": glass}, "window",
+                      skip=("back",))
+    mats = {"side": frame_mat}
+    room.add_wall_box(w, s - wf, s, sill, sill + wh, 0, 0.04, mats, "window_frame", skip=("back",))
+    room.add_wall_box(w, s + ww, s + ww + wf, sill, sill + wh, 0, 0.04, mats, "window_frame", skip=("back",))
+    room.add_wall_box(w, s - wf, s + ww + wf, sill + wh, sill + wh + wf, 0, 0.04, mats, "window_frame",
+                      skip=("back",))
+    room.add_wall_box(w, s - wf - 0.04, s + ww + wf + 0.04, sill - 0.03, sill, 0, 0.13, mats, "window_sill",
+                      skip=("back",))
+    mid = s + ww / 2
+    room.add_wall_box(w, mid - 0.02, mid + 0.02, sill, sill + wh, 0.005, 0.03, mats, "window_frame",
+                      skip=("back",))
+    if rng.random() < 0.5:
+        hm = sill + wh * rng.uniform(0.55, 0.7)
+        room.add_wall_box(w, s, s + ww, hm - 0.02, hm + 0.02, 0.005, 0.03, mats, "window_frame",
+                          skip=("back",))
+    occ.add(w.index, s - wf - 0.04, s + ww + wf + 0.04, sill - 0.05, sill + wh + wf, "window")
+    room.blockers.append(w.aabb(s - wf - 0.04, s + ww + wf + 0.04, sill - 0.03, sill + wh + wf, 0.0, 0.13))
+
+
+def _add_furniture(room: Room, occ: _Occupancy, budget: list, rng):
+    """Add cabinets, shelves and desks (sometimes stairs) in random order, each where it fits."""
     plain_front = Material("plain", _paint(rng))
     kinds = ["cabinet", "shelf", "desk", "cabinet", "shelf", "desk", "cabinet"]
     rng.shuffle(kinds)
@@ -314,51 +347,69 @@ def build_room(rng: np.random.Generator) -> Room:
         kinds.insert(int(rng.integers(0, 3)), "stairs")
     for kind in kinds:
         for _try in range(30):
-            w = walls[int(rng.integers(0, 4))]
-            spec = _furniture_spec(kind, rng)
-            width, depth, height = spec["w"], min(spec["d"], budget[w.index]), spec["h"]
-            if depth < 0.3 or width + 0.2 > w.length:
-                continue
-            s = float(rng.uniform(0.05, w.length - 0.05 - width))
-            if not occ.free(w.index, s, s + width, 0.0, height):
-                continue
-            lo, hi = w.aabb(s, s + width, 0, height, 0.02, 0.02 + depth)
-            others = [(b_lo, b_hi) for b_lo, b_hi, _ in room.obstacles] + room.blockers
-            if any(np.all(lo < b_hi + 0.05) and np.all(hi > b_lo - 0.05) for b_lo, b_hi in others):
-                continue
-            _FURNITURE[kind](room, w, s, width, depth, height, spec, rng, plain_front)
-            room.obstacles.append((lo, hi, kind))
-            occ.add(w.index, s, s + width, 0.0, height, kind)
-            room.band[w.index] = max(room.band[w.index], 0.02 + depth)
-            room.has_stairs |= kind == "stairs"
-            break
+            if _try_place_furniture(room, occ, kind, budget, rng, plain_front):
+                break
 
-    # ---- baseboards and pictures --------------------------------------------------------------------------
-    for w, m in zip(walls, wall_mats):
-        segs = [(0.0, w.length)]
-        if w.index == door_span[0]:
-            segs = [(0.0, door_span[1]), (door_span[2], w.length)]
-        for a, b in segs:
-            if b - a > 0.05:
-                room.add_wall_box(w, a, b, 0, 0.08, 0, 0.015, {"side": frame_mat}, "baseboard",
-                                  skip=("back", "bottom"))
+
+def _try_place_furniture(room: Room, occ: _Occupancy, kind: str, budget: list, rng, plain_front) -> bool:
+    """Draw one random spot for ``kind`` and add it there if it fits; False when it does not."""
+    w = room.walls[int(rng.integers(0, 4))]
+    spec = _furniture_spec(kind, rng)
+    width, depth, height = spec["w"], min(spec["d"], budget[w.index]), spec["h"]
+    if depth < 0.3 or width + 0.2 > w.length:
+        return False
+    s = float(rng.uniform(0.05, w.length - 0.05 - width))
+    if not occ.free(w.index, s, s + width, 0.0, height):
+        return False
+    lo, hi = w.aabb(s, s + width, 0, height, 0.02, 0.02 + depth)
+    others = [(b_lo, b_hi) for b_lo, b_hi, _ in room.obstacles] + room.blockers
+    if any(np.all(lo < b_hi + 0.05) and np.all(hi > b_lo - 0.05) for b_lo, b_hi in others):
+        return False
+    _FURNITURE[kind](room, w, s, width, depth, height, spec, rng, plain_front)
+    room.obstacles.append((lo, hi, kind))
+    occ.add(w.index, s, s + width, 0.0, height, kind)
+    room.band[w.index] = max(room.band[w.index], 0.02 + depth)
+    room.has_stairs |= kind == "stairs"
+    return True
+
+
+def _add_wall_trim(room: Room, occ: _Occupancy, wall_mats: list, door_span: tuple, frame_mat: Material, rng):
+    """Add baseboards to every wall and pictures to every textured one, wall by wall."""
+    for w, m in zip(room.walls, wall_mats):
+        _add_baseboards(room, w, door_span, frame_mat)
         if m.plain:
             continue  # keep the plain wall plain: only its edges are there to match
-        for _ in range(int(rng.integers(1, 3))):
-            for _try in range(20):
-                pw, ph = float(rng.uniform(0.4, 1.0)), float(rng.uniform(0.35, 0.8))
-                h0 = float(rng.uniform(1.0, min(2.1, H - 0.3 - ph)))
-                s = float(rng.uniform(0.2, max(0.21, w.length - 0.2 - pw)))
-                if s + pw > w.length - 0.1 or not occ.free(w.index, s, s + pw, h0, h0 + ph):
-                    continue
-                fr = Material("plain", _rgb(rng, 0.05, 0.6))
-                room.add_wall_box(w, s, s + pw, h0, h0 + ph, 0, 0.02, {"side": fr}, "picture_frame", skip=("back",))
-                m_in = 0.035
-                room.add_wall_box(w, s + m_in, s + pw - m_in, h0 + m_in, h0 + ph - m_in, 0, 0.026,
-                                  {"side": fr, "front": _poster_mat(rng)}, "picture", skip=("back",))
-                occ.add(w.index, s, s + pw, h0, h0 + ph, "picture")
-                break
-    return room
+        _add_pictures(room, occ, w, rng)
+
+
+def _add_baseboards(room: Room, w: Wall, door_span: tuple, frame_mat: Material):
+    """Add the baseboard along wall ``w``, broken where the door is."""
+    segs = [(0.0, w.length)]
+    if w.index == door_span[0]:
+        segs = [(0.0, door_span[1]), (door_span[2], w.length)]
+    for a, b in segs:
+        if b - a > 0.05:
+            room.add_wall_box(w, a, b, 0, 0.08, 0, 0.015, {"side": frame_mat}, "baseboard",
+                              skip=("back", "bottom"))
+
+
+def _add_pictures(room: Room, occ: _Occupancy, w: Wall, rng):
+    """Add 1-2 framed posters to wall ``w``, each where it fits (or none after 20 tries)."""
+    H = room.size[2]
+    for _ in range(int(rng.integers(1, 3))):
+        for _try in range(20):
+            pw, ph = float(rng.uniform(0.4, 1.0)), float(rng.uniform(0.35, 0.8))
+            h0 = float(rng.uniform(1.0, min(2.1, H - 0.3 - ph)))
+            s = float(rng.uniform(0.2, max(0.21, w.length - 0.2 - pw)))
+            if s + pw > w.length - 0.1 or not occ.free(w.index, s, s + pw, h0, h0 + ph):
+                continue
+            fr = Material("plain", _rgb(rng, 0.05, 0.6))
+            room.add_wall_box(w, s, s + pw, h0, h0 + ph, 0, 0.02, {"side": fr}, "picture_frame", skip=("back",))
+            m_in = 0.035
+            room.add_wall_box(w, s + m_in, s + pw - m_in, h0 + m_in, h0 + ph - m_in, 0, 0.026,
+                              {"side": fr, "front": _poster_mat(rng)}, "picture", skip=("back",))
+            occ.add(w.index, s, s + pw, h0, h0 + ph, "picture")
+            break
 
 
 def _furniture_spec(kind, rng) -> dict:

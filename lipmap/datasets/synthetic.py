@@ -274,14 +274,7 @@ def generate_scene(out_root, seed: int = 0, preset="small", overwrite: bool = Fa
     scene_dir = Path(out_root) / f"room-s{seed}"
     marker = scene_dir / "scene.json"
     if marker.exists() and not overwrite:
-        try:
-            meta = json.loads(marker.read_text())
-        except json.JSONDecodeError as e:
-            raise InputError(f"scene.json is not valid JSON ({e})", marker, hint="pass overwrite=True") from e
-        if meta.get("preset") != cfg.name or meta.get("generator_version") != GENERATOR_VERSION:
-            raise InputError(f"existing scene was made with preset {meta.get('preset')!r} (generator version "
-                             f"{meta.get('generator_version')}), asked for {cfg.name!r} (version {GENERATOR_VERSION})",
-                             marker, hint="pass overwrite=True (--overwrite) or another --out")
+        _check_existing_scene(marker, cfg)
         logger.info(f"Skipping synthetic scene {scene_dir}: it exists (overwrite=False).")
         return scene_dir
 
@@ -289,32 +282,73 @@ def generate_scene(out_root, seed: int = 0, preset="small", overwrite: bool = Fa
     logger.info(f"Generating synthetic scene {scene_dir} (seed {seed}, preset {cfg.name}).")
     scene_dir.mkdir(parents=True, exist_ok=True)
     _clean(scene_dir)
+    room, scene, mapping, query = _build_world(seed, cfg)
+    t_build = time.perf_counter() - t0
+    plain_pixels, total_pixels = _render_sequences(scene_dir, scene, cfg, seed, mapping, query)
+    _write_scene_files(scene_dir, room, scene)
+    meta = _scene_meta(cfg, seed, room, scene, plain_pixels, total_pixels)
+    write_text_atomic(marker, json.dumps(meta, indent=1) + "\n")
+    logger.info(f"Synthetic scene {scene_dir.name}: room {room.size[0]:.2f} x {room.size[1]:.2f} x "
+                f"{room.size[2]:.2f} m, {len(room.surfaces)} surfaces, {cfg.n_mapping}+{cfg.n_query} frames "
+                f"in {time.perf_counter() - t0:.1f} s (scene {t_build:.1f} s).")
+    return scene_dir
+
+
+def _check_existing_scene(marker: Path, cfg: SynthConfig):
+    """Raise InputError unless the complete scene at ``marker`` was made with this preset and generator."""
+    try:
+        meta = json.loads(marker.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(f"scene.json is not valid JSON ({e})", marker, hint="pass overwrite=True") from e
+    if meta.get("preset") != cfg.name or meta.get("generator_version") != GENERATOR_VERSION:
+        raise InputError(f"existing scene was made with preset {meta.get('preset')!r} (generator version "
+                         f"{meta.get('generator_version')}), asked for {cfg.name!r} (version {GENERATOR_VERSION})",
+                         marker, hint="pass overwrite=True (--overwrite) or another --out")
+
+
+def _build_world(seed: int, cfg: SynthConfig) -> tuple:
+    """The room, its textured render scene and the (mapping, query) camera loops of ``seed``."""
     # independent streams: the room and the camera loops do not depend on the preset's texture size
     ss_room, ss_tex, ss_traj = np.random.SeedSequence(seed).spawn(3)
     room = build_room(np.random.default_rng(ss_room))
     scene = RenderScene.build(room, cfg.texels_per_m, np.random.default_rng(ss_tex))
     mapping, query = make_trajectories(scene, cfg, np.random.default_rng(ss_traj))
-    t_build = time.perf_counter() - t0
+    return room, scene, mapping, query
 
+
+def _render_sequences(scene_dir: Path, scene: RenderScene, cfg: SynthConfig, seed: int, mapping, query) -> tuple:
+    """Render and write seq-01 (mapping) and seq-02 (query); returns the mapping frames' (plain, all) pixels."""
     camera = cfg.camera
     plain_pixels = total_pixels = 0
     for seq_idx, (seq, poses) in enumerate((("seq-01", mapping), ("seq-02", query)), start=1):
         seq_dir = scene_dir / seq
         seq_dir.mkdir(exist_ok=True)
         for i, T in enumerate(tqdm(poses, desc=f"render {seq}", leave=False)):
-            noise_rng = np.random.default_rng([seed, seq_idx, i])
-            rgb, depth, normals, sid = render_view(scene, camera, T, cfg.supersample, cfg.noise_sigma, noise_rng)
-            if cfg.depth_warp_sigma > 0:
-                depth = corrupt_depth(depth, np.random.default_rng([seed, seq_idx, i, 1]), cfg.depth_warp_sigma)
-            files = _frame_files(seq_dir, i)
-            write_color(files["color"], rgb)
-            write_depth(files["depth"], depth)
-            write_normals(files["normal"], normals)
-            write_text_atomic(files["pose"], _pose_text(T))
+            sid = _render_frame(seq_dir, i, T, scene, camera, cfg, seed, seq_idx)
             if seq_idx == 1:
                 plain_pixels += int(scene.plain[sid[sid >= 0]].sum())
                 total_pixels += int((sid >= 0).sum())
+    return plain_pixels, total_pixels
 
+
+def _render_frame(seq_dir: Path, i: int, T: np.ndarray, scene: RenderScene, camera: Camera, cfg: SynthConfig,
+                  seed: int, seq_idx: int) -> np.ndarray:
+    """Render and write frame ``i``'s colour, depth, normals and pose; returns its per-pixel surface ids."""
+    # noise seeded per frame, so a frame does not depend on how many were rendered before it
+    noise_rng = np.random.default_rng([seed, seq_idx, i])
+    rgb, depth, normals, sid = render_view(scene, camera, T, cfg.supersample, cfg.noise_sigma, noise_rng)
+    if cfg.depth_warp_sigma > 0:
+        depth = corrupt_depth(depth, np.random.default_rng([seed, seq_idx, i, 1]), cfg.depth_warp_sigma)
+    files = _frame_files(seq_dir, i)
+    write_color(files["color"], rgb)
+    write_depth(files["depth"], depth)
+    write_normals(files["normal"], normals)
+    write_text_atomic(files["pose"], _pose_text(T))
+    return sid
+
+
+def _write_scene_files(scene_dir: Path, room: Room, scene: RenderScene):
+    """Write the split files, the ground-truth mesh (with surface ids) and surfaces.json."""
     write_text_atomic(scene_dir / "TrainSplit.txt", "sequence1\n")
     write_text_atomic(scene_dir / "TestSplit.txt", "sequence2\n")
     mesh = scene.mesh.copy()
@@ -323,8 +357,12 @@ def generate_scene(out_root, seed: int = 0, preset="small", overwrite: bool = Fa
         mesh.export(tmp, file_type="ply")
     write_text_atomic(scene_dir / "surfaces.json", _surfaces_json(room))
 
+
+def _scene_meta(cfg: SynthConfig, seed: int, room: Room, scene: RenderScene, plain_pixels: int,
+                total_pixels: int) -> dict:
+    """The contents of scene.json."""
     areas = np.array([s.area for s in room.surfaces])
-    meta = {
+    return {
         "dataset": "synthetic",
         "width": cfg.width,
         "height": cfg.height,
@@ -345,11 +383,6 @@ def generate_scene(out_root, seed: int = 0, preset="small", overwrite: bool = Fa
         "depth_warp_sigma": cfg.depth_warp_sigma,
         "generator_version": GENERATOR_VERSION,
     }
-    write_text_atomic(marker, json.dumps(meta, indent=1) + "\n")
-    logger.info(f"Synthetic scene {scene_dir.name}: room {room.size[0]:.2f} x {room.size[1]:.2f} x "
-                f"{room.size[2]:.2f} m, {len(room.surfaces)} surfaces, {cfg.n_mapping}+{cfg.n_query} frames "
-                f"in {time.perf_counter() - t0:.1f} s (scene {t_build:.1f} s).")
-    return scene_dir
 
 
 # ---- CLI --------------------------------------------------------------------------------------------------

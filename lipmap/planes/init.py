@@ -101,6 +101,17 @@ def fuse_tsdf(frames, conf: PlaneInitConfig, device=None) -> tuple[np.ndarray, n
         **vertices** :math:`(V, 3)` world metres and **faces** :math:`(F, 3)` int64.
     """
     device = torch.device(device or "cpu")
+    frames, pts = _frames_with_depth(frames, conf)
+    if not frames:
+        raise InputError("no view has valid depth and a pose: cannot fuse depth")
+    lo, voxel, trunc, dims = _tsdf_volume(np.concatenate(pts), conf)
+    logger.info("plane init: TSDF %s voxels of %.3f m over %d views", "x".join(map(str, dims)), voxel, len(frames))
+    tsdf, weight = _integrate_tsdf(frames, lo, voxel, trunc, dims, device)
+    return _tsdf_surface(tsdf, weight, dims, voxel, lo)
+
+
+def _frames_with_depth(frames, conf: PlaneInitConfig) -> tuple[list, list]:
+    """(camera, pose, depth) of the frames with usable depth (others dropped) and a subsample of their world points."""
     used, pts = [], []
     for _, cam, T, depth in frames:
         depth = np.where(np.isfinite(depth) & (depth > 0) & (depth <= conf.max_depth), depth, 0).astype(np.float32)
@@ -110,10 +121,11 @@ def fuse_tsdf(frames, conf: PlaneInitConfig, device=None) -> tuple[np.ndarray, n
         X = cam.pixel_rays()[depth > 0] * depth[depth > 0, None]
         sub = X[:: max(1, len(X) // 20000)]
         pts.append((sub - T[:3, 3]) @ T[:3, :3])  # world = R^T (x - t)
-    frames = used
-    if not frames:
-        raise InputError("no view has valid depth and a pose: cannot fuse depth")
-    pts = np.concatenate(pts)
+    return used, pts
+
+
+def _tsdf_volume(pts: np.ndarray, conf: PlaneInitConfig):
+    """Grid origin, voxel size (coarsened to stay under max_voxels), truncation and dims over the points' bounds."""
     p = conf.bounds_percentile
     lo, hi = np.percentile(pts, p, axis=0), np.percentile(pts, 100 - p, axis=0)
     voxel = float(conf.voxel_size)
@@ -125,36 +137,60 @@ def fuse_tsdf(frames, conf: PlaneInitConfig, device=None) -> tuple[np.ndarray, n
     if voxel != conf.voxel_size:
         logger.info("plane init: voxels coarsened to %.3f m to stay under %d voxels", voxel, conf.max_voxels)
     dims = (np.ceil((hi - lo) / voxel) + 1).astype(int)
-    logger.info("plane init: TSDF %s voxels of %.3f m over %d views", "x".join(map(str, dims)), voxel, len(frames))
+    return lo, voxel, trunc, dims
 
+
+def _integrate_tsdf(frames: list, lo, voxel: float, trunc: float, dims, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fuse every frame into a dense grid; returns the flat TSDF and observation weight per voxel."""
     f32 = dict(dtype=torch.float32, device=device)
     axes = [torch.arange(d, **f32) * voxel + float(lo[i]) for i, d in enumerate(dims)]
     grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     tsdf = torch.ones(len(grid), **f32)
     weight = torch.zeros(len(grid), **f32)
     for cam, T, depth in frames:
-        Tt = torch.as_tensor(T, **f32)
-        Xc = grid @ Tt[:3, :3].T + Tt[:3, 3]
-        z = Xc[:, 2]
-        zs = z.clamp(min=1e-6)
-        # continuous pixel coordinates with pixel centres at integers (COLMAP centre = +0.5)
-        u = cam.fx * Xc[:, 0] / zs + cam.cx - 0.5
-        v = cam.fy * Xc[:, 1] / zs + cam.cy - 0.5
-        inside = (z > 1e-3) & (u >= 0) & (u <= cam.width - 1) & (v >= 0) & (v <= cam.height - 1)
-        idx = inside.nonzero().squeeze(1)
-        d = _sample_depth(torch.as_tensor(depth, **f32), u[idx], v[idx])
-        sdf = d - z[idx]
-        # voxels far behind the surface stay unobserved, so no false surface appears there
-        upd = (d > 0) & (sdf >= -trunc)
-        idx, sdf = idx[upd], sdf[upd]
-        val = (sdf / trunc).clamp(max=1.0)
-        w_old = weight[idx]
-        tsdf[idx] = (tsdf[idx] * w_old + val) / (w_old + 1)
-        weight[idx] = w_old + 1
+        _integrate_frame(grid, tsdf, weight, cam, T, depth, trunc)
+    return tsdf, weight
+
+
+def _integrate_frame(grid: torch.Tensor, tsdf: torch.Tensor, weight: torch.Tensor, cam, T, depth, trunc: float):
+    """Average one frame's truncated signed distances into ``tsdf`` / ``weight`` (in place)."""
+    f32 = dict(dtype=torch.float32, device=grid.device)
+    Tt = torch.as_tensor(T, **f32)
+    Xc = grid @ Tt[:3, :3].T + Tt[:3, 3]
+    z = Xc[:, 2]
+    zs = z.clamp(min=1e-6)
+    # continuous pixel coordinates with pixel centres at integers (COLMAP centre = +0.5)
+    u = cam.fx * Xc[:, 0] / zs + cam.cx - 0.5
+    v = cam.fy * Xc[:, 1] / zs + cam.cy - 0.5
+    inside = (z > 1e-3) & (u >= 0) & (u <= cam.width - 1) & (v >= 0) & (v <= cam.height - 1)
+    idx = inside.nonzero().squeeze(1)
+    d = _sample_depth(torch.as_tensor(depth, **f32), u[idx], v[idx])
+    sdf = d - z[idx]
+    # voxels far behind the surface stay unobserved, so no false surface appears there
+    upd = (d > 0) & (sdf >= -trunc)
+    idx, sdf = idx[upd], sdf[upd]
+    val = (sdf / trunc).clamp(max=1.0)
+    w_old = weight[idx]
+    tsdf[idx] = (tsdf[idx] * w_old + val) / (w_old + 1)
+    weight[idx] = w_old + 1
+
+
+def _tsdf_surface(tsdf: torch.Tensor, weight: torch.Tensor, dims, voxel: float, lo) -> tuple[np.ndarray, np.ndarray]:
+    """Zero surface of the TSDF over fully observed cubes: world vertices (V, 3) and faces (F, 3)."""
     from skimage.measure import marching_cubes
 
     vol = tsdf.reshape(*dims).cpu().numpy()
     obs = (weight > 0).reshape(*dims).cpu().numpy()
+    mask = _observed_cubes_mask(obs, dims)
+    if not ((vol < 0) & mask).any() or not ((vol > 0) & mask).any():
+        raise InputError("the fused depth holds no surface (TSDF has no zero crossing)")
+    verts, faces, _, _ = marching_cubes(vol, level=0.0, mask=mask)
+    verts = verts * voxel + lo
+    return verts.astype(np.float64), faces.astype(np.int64)
+
+
+def _observed_cubes_mask(obs: np.ndarray, dims) -> np.ndarray:
+    """marching_cubes mask admitting only cubes whose 8 corners are all observed."""
     # require all 8 corners of a cube observed, or the step from the band behind a surface (-1)
     # to never-observed voxels (+1) makes false walls; skimage (0.26, checked by the tests) reads
     # the mask of cube [i, i+1] at its far corner i+1
@@ -165,11 +201,7 @@ def fuse_tsdf(frames, conf: PlaneInitConfig, device=None) -> tuple[np.ndarray, n
             for dz in (0, 1):
                 c &= obs[dx : dims[0] - 1 + dx, dy : dims[1] - 1 + dy, dz : dims[2] - 1 + dz]
     mask[1:, 1:, 1:] = c
-    if not ((vol < 0) & mask).any() or not ((vol > 0) & mask).any():
-        raise InputError("the fused depth holds no surface (TSDF has no zero crossing)")
-    verts, faces, _, _ = marching_cubes(vol, level=0.0, mask=mask)
-    verts = verts * voxel + lo
-    return verts.astype(np.float64), faces.astype(np.int64)
+    return mask
 
 
 def _sample_depth(depth: torch.Tensor, u: torch.Tensor, v: torch.Tensor, max_rel_spread: float = 0.05) -> torch.Tensor:

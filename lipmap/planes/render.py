@@ -314,8 +314,7 @@ def select_hits(
     """
     _check_inputs(center, quat, radii, cam_from_world, width, height)
     intrinsics = tuple(float(v) for v in intrinsics)
-    fx, fy, cx, cy = intrinsics
-    dev, dt = center.device, center.dtype
+    dev = center.device
     P = width * height
     hits = torch.full((P, max_hits), -1, dtype=torch.long, device=dev)
     K = len(center)
@@ -328,12 +327,22 @@ def select_hits(
     tile, plane, ntx, nty = _tile_pairs(boxes, vis, width, height, tile_size)
     if len(tile) == 0:
         return hits
-
-    # per-plane data for the batched intersection: plane (n . x = nc) and rectangle in coordinates
-    # centred on it, so that the splat weight along X is 1 for |X . x - xc| <= hx and
-    # 2 sigmoid(lam (hx - |X . x - xc|)) beyond (same for Y); the selection test is the weight
-    # > WEIGHT_EPS, i.e. |X . x - xc| < hx + margin
+    # the selection test "splat weight > WEIGHT_EPS" is "|X . x - xc| < hx + margin" (same along Y)
     margin = SPLAT_MARGIN / lam
+    dirs, scal = _intersection_tables(c, ax, ay, n, r)
+    keep = _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, n, ax, ay, scal, zmin, margin, max_hits)
+    tile, plane = tile[keep], plane[keep]
+    rank, size = _group_sizes(tile, ntx * nty, max_hits)
+    _select_in_groups(hits, tile, plane, rank, size, K, ntx, nty, tile_size, width, height, intrinsics, dirs, scal,
+                      margin, lam, max_hits)
+    return hits
+
+
+def _intersection_tables(c, ax, ay, n, r):
+    """Per-plane directions (K+1, 3, 3) and scalars (K+1, 5) for the batched intersection; row K never hits."""
+    dev, dt = c.device, c.dtype
+    # plane (n . x = nc) and rectangle in coordinates centred on it, so that the splat weight along
+    # X is 1 for |X . x - xc| <= hx and 2 sigmoid(lam (hx - |X . x - xc|)) beyond (same for Y)
     nc = (n * c).sum(-1)
     xc = (ax * c).sum(-1) + 0.5 * (r[:, 0] - r[:, 1])
     yc = (ay * c).sum(-1) + 0.5 * (r[:, 2] - r[:, 3])
@@ -342,22 +351,30 @@ def select_hits(
     # row K is a dummy that never intersects (t = -1 < NEAR), used for padding
     dirs = torch.cat([torch.stack([n, ax, ay], 2), torch.eye(3, device=dev, dtype=dt)[[2, 0, 1]].T[None]])  # (K+1, 3, 3)
     scal = torch.cat([torch.stack([nc, xc, yc, hx, hy], 1), torch.tensor([[-1.0, 0, 0, 0, 0]], device=dev, dtype=dt)])
+    return dirs, scal
 
-    keep = _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, n, ax, ay, scal, zmin, margin, max_hits)
-    tile, plane = tile[keep], plane[keep]
-    counts = torch.bincount(tile, minlength=ntx * nty)
+
+def _group_sizes(tile, n_tiles: int, max_hits: int):
+    """Rank of each (tile, plane) pair within its tile and each tile's padded candidate count (0: none)."""
+    counts = torch.bincount(tile, minlength=n_tiles)
     start = torch.cumsum(counts, 0) - counts
-    rank = torch.arange(len(tile), device=dev) - start[tile]
+    rank = torch.arange(len(tile), device=tile.device) - start[tile]
     # tiles grouped by candidate count rounded up to 2^k or 1.5 * 2^k (>= max_hits): padding < 1.5x
     lmin = max(max_hits, 4)
     p2 = torch.clamp(counts, min=1).double().log2().ceil().exp2()
     size = torch.where(counts <= 0.75 * p2, 0.75 * p2, p2).long().clamp(min=lmin)
     size[counts == 0] = 0
+    return rank, size
+
+
+def _select_in_groups(hits, tile, plane, rank, size, K, ntx, nty, tile_size, width, height, intrinsics, dirs, scal,
+                      margin, lam, max_hits):
+    """Fill ``hits`` group by group: the tiles of one padded size L share one batched intersection."""
+    dev = hits.device
     ts = tile_size
     ly, lx = torch.meshgrid(torch.arange(ts, device=dev), torch.arange(ts, device=dev), indexing="ij")
     lx, ly = lx.reshape(-1), ly.reshape(-1)
     row_of_tile = torch.empty(ntx * nty, dtype=torch.long, device=dev)
-    inf = float("inf")
     # evaluations per chunk (pixels x candidates): bounds the memory when splats are wide
     budget = _EVAL_BUDGET_CUDA if dev.type == "cuda" else _EVAL_BUDGET_CPU
     for L in torch.unique(size[size > 0]).tolist():
@@ -369,32 +386,44 @@ def select_hits(
         chunk = max(1, budget // (ts * ts * L))
         for c0 in range(0, len(tiles_all), chunk):
             tiles_b, cand = tiles_all[c0 : c0 + chunk], cand_all[c0 : c0 + chunk]
-            nb = len(tiles_b)
-            col = (tiles_b % ntx * ts)[:, None] + lx  # (nb, ts*ts)
-            row = (torch.div(tiles_b, ntx, rounding_mode="floor") * ts)[:, None] + ly
-            inside = (col < width) & (row < height)
-            A = torch.stack([(col + 0.5 - cx) / fx, (row + 0.5 - cy) / fy, torch.ones(col.shape, dtype=dt, device=dev)], -1)
-            # (nb, 3, 3L): for each candidate the columns n, X, Y; one bmm gives every n.d, X.d, Y.d
-            B = dirs.index_select(0, cand.reshape(-1)).reshape(nb, L, 3, 3).permute(0, 2, 3, 1).reshape(nb, 3, 3 * L)
-            dots = torch.bmm(A, B)  # (nb, ts*ts, 3L)
-            sc = scal.index_select(0, cand.reshape(-1)).reshape(nb, 1, L, 5)
-            t = sc[..., 0] / dots[..., :L]
-            ex = (t * dots[..., L : 2 * L] - sc[..., 1]).abs_().sub_(sc[..., 3])  # distance outside, along X
-            ey = (t * dots[..., 2 * L :] - sc[..., 2]).abs_().sub_(sc[..., 4])
-            ok = (t > NEAR) & (ex < margin) & (ey < margin) & inside[..., None]
-            k = min(max_hits, L)
-            kv, ki = torch.topk(torch.where(ok, t, inf), k, dim=-1, largest=False, sorted=True)
-            # transmittance along the k nearest; entries behind T < TRANSMITTANCE_EPS / 2 are dropped
-            # (the exact cut at TRANSMITTANCE_EPS is made by composite_hits with its own arithmetic)
-            e = torch.maximum(ex.gather(2, ki), ey.gather(2, ki))
-            w = torch.where(e <= 0, 1.0, 2 * torch.sigmoid(-lam * e))
-            w = torch.where(torch.isfinite(kv), w, 0.0)
-            trans = torch.cumprod(torch.cat([torch.ones_like(w[..., :1]), 1 - w[..., :-1]], -1), -1)
-            sel = torch.gather(cand[:, None, :].expand(-1, ts * ts, -1), 2, ki)
-            sel = torch.where(torch.isfinite(kv) & (trans >= 0.5 * TRANSMITTANCE_EPS), sel, -1)
+            row, col, inside, A = _tile_pixel_rays(tiles_b, lx, ly, ntx, ts, width, height, intrinsics, dirs.dtype)
+            sel = _nearest_hits(A, cand, inside, dirs, scal, margin, lam, max_hits)
             pix = (row * width + col)[inside]
-            hits[pix, :k] = sel[inside]
-    return hits
+            hits[pix, : sel.shape[-1]] = sel[inside]
+
+
+def _tile_pixel_rays(tiles_b, lx, ly, ntx, ts, width, height, intrinsics, dt):
+    """Rows, columns, in-image mask (nb, ts*ts) and z = 1 rays (nb, ts*ts, 3) of the pixels of tiles ``tiles_b``."""
+    fx, fy, cx, cy = intrinsics
+    col = (tiles_b % ntx * ts)[:, None] + lx  # (nb, ts*ts)
+    row = (torch.div(tiles_b, ntx, rounding_mode="floor") * ts)[:, None] + ly
+    inside = (col < width) & (row < height)
+    A = torch.stack([(col + 0.5 - cx) / fx, (row + 0.5 - cy) / fy, torch.ones(col.shape, dtype=dt, device=col.device)], -1)
+    return row, col, inside, A
+
+
+def _nearest_hits(A, cand, inside, dirs, scal, margin, lam, max_hits):
+    """Per pixel, the min(max_hits, L) nearest of its tile's L candidates it hits (nb, ts*ts, k), -1 padded."""
+    nb, L = cand.shape
+    inf = float("inf")
+    # (nb, 3, 3L): for each candidate the columns n, X, Y; one bmm gives every n.d, X.d, Y.d
+    B = dirs.index_select(0, cand.reshape(-1)).reshape(nb, L, 3, 3).permute(0, 2, 3, 1).reshape(nb, 3, 3 * L)
+    dots = torch.bmm(A, B)  # (nb, ts*ts, 3L)
+    sc = scal.index_select(0, cand.reshape(-1)).reshape(nb, 1, L, 5)
+    t = sc[..., 0] / dots[..., :L]
+    ex = (t * dots[..., L : 2 * L] - sc[..., 1]).abs_().sub_(sc[..., 3])  # distance outside, along X
+    ey = (t * dots[..., 2 * L :] - sc[..., 2]).abs_().sub_(sc[..., 4])
+    ok = (t > NEAR) & (ex < margin) & (ey < margin) & inside[..., None]
+    k = min(max_hits, L)
+    kv, ki = torch.topk(torch.where(ok, t, inf), k, dim=-1, largest=False, sorted=True)
+    # transmittance along the k nearest; entries behind T < TRANSMITTANCE_EPS / 2 are dropped
+    # (the exact cut at TRANSMITTANCE_EPS is made by composite_hits with its own arithmetic)
+    e = torch.maximum(ex.gather(2, ki), ey.gather(2, ki))
+    w = torch.where(e <= 0, 1.0, 2 * torch.sigmoid(-lam * e))
+    w = torch.where(torch.isfinite(kv), w, 0.0)
+    trans = torch.cumprod(torch.cat([torch.ones_like(w[..., :1]), 1 - w[..., :-1]], -1), -1)
+    sel = torch.gather(cand[:, None, :].expand(-1, A.shape[1], -1), 2, ki)
+    return torch.where(torch.isfinite(kv) & (trans >= 0.5 * TRANSMITTANCE_EPS), sel, -1)
 
 
 # ------------------------------------------------------------------------------------------------
