@@ -3,14 +3,20 @@
     python benchmarks/depth_registration.py --root ../shared/data/7scenes-redkitchen-mini --scene redkitchen
 
 Back-projects frame i's depth, re-projects it into frame i+gap, and compares with frame i+gap's depth.
+Writes ``benchmarks/results/depth-registration-<scene>.json``.
 """
 import argparse
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 
 from lipmap.datasets import load_scene
 from lipmap.datasets.registration import cross_view_depth_residuals
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import results  # noqa: E402
 
 
 def measure(root, scene, register, gap, **kw):
@@ -41,6 +47,9 @@ def main():
         out["registered (translation only)"] = measure(a.root, a.scene, True, a.gap, color_from_depth=t_only)
     for k, v in out.items():
         print(json.dumps({"scene": a.scene, "gap": a.gap, "depth": k, **v}))
+    rows = [[a.scene, k, f"{v['median_mm']:.1f}", f"{v['p90_mm']:.1f}"] for k, v in out.items()]
+    results.write(f"depth-registration-{a.scene}", {"gap": a.gap, "measured": out, "table": {
+        "header": ["scene", "depth", "median cross-view residual (mm)", "90th percentile (mm)"], "rows": rows}})
 
 
 if __name__ == "__main__":

@@ -3,17 +3,19 @@
     python benchmarks/mapping_table.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
         --scene redkitchen --out OUT [--preset fast] [--methods lipmap,lift] [--plane-depth-tols 0]
 
-Maps with each method into OUT/<method> (an existing linemap.h5 is reused, as `lipmap-loc map` does),
-evaluates against the scene's ground truth (its mesh, else fused depth: the same as `lipmap-loc
-map-eval`) and prints a markdown table; the times are the mapping runs' own (linemap.h5 metadata).
+Maps with each method into OUT/<method> (an existing linemap.h5 made with the same settings is reused, as
+`lipmap-loc map` does), evaluates against the scene's ground truth (its mesh, else fused depth: the same as
+`lipmap-loc map-eval`), prints a markdown table and writes it with the metrics to
+``benchmarks/results/mapping-<dataset>-<scene>[-<tag>].json`` (the README's mapping table is generated from
+there); the times are the mapping runs' own (linemap.h5 metadata).
 ``--plane-depth-tols`` adds lipmap rows with other ``MappingConfig.plane_depth_tol`` values, built on the
 same planes (OUT/lipmap-tol<value>, reusing OUT/lipmap's planes.h5 and lines2d.h5).
 """
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
+import sys
 from pathlib import Path
 
 from lipmap.datasets import load_scene
@@ -21,14 +23,21 @@ from lipmap.evaluation import evaluate_linemap, load_ground_truth, scene_ground_
 from lipmap.linemap import LineMap
 from lipmap.mapping.pipeline import edge_line_mask, map_scene
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import results  # noqa: E402
 
-def row(name: str, lm: LineMap, gt, seconds) -> tuple[str, dict]:
+
+HEADER = ["scene (ground truth)", "method", "lines", "PREC@5cm", "RECALL@5cm", "F@5cm", "R@5mm", "R@50mm",
+          "supports (images / 2D lines)", "mapping time"]
+
+
+def row(label: str, name: str, lm: LineMap, gt, seconds) -> tuple[list, dict]:
     res = evaluate_linemap(lm, gt)
     m1, m2 = res["M1"]["line"], res["M2"]
     t = "" if seconds is None else f"{seconds:.0f} s"
-    cells = [name, str(len(lm)), f"{m1['prec@0.05']:.3f}", f"{m1['recall@0.05']:.3f}", f"{m1['f@0.05']:.3f}",
-             f"{m2['R@5mm']:.0f}", f"{m2['R@50mm']:.0f}", t]
-    return "| " + " | ".join(cells) + " |", res
+    cells = [label, name, len(lm), f"{m1['prec@0.05']:.3f}", f"{m1['recall@0.05']:.3f}", f"{m1['f@0.05']:.3f}",
+             f"{m2['R@5mm']:.0f}", f"{m2['R@50mm']:.0f}", f"{m2['supports_images']:.1f} / {m2['supports_lines']:.1f}", t]
+    return cells, res
 
 
 def main(argv=None):
@@ -40,35 +49,39 @@ def main(argv=None):
     ap.add_argument("--preset", default="fast", help="mapping preset of the lipmap run")
     ap.add_argument("--methods", default="lipmap,lift")
     ap.add_argument("--plane-depth-tols", default="", help="extra lipmap rows, comma separated metres")
+    ap.add_argument("--label", default=None, help="the scene's name in the table (default: scene (ground truth kind))")
+    ap.add_argument("--tag", default="", help="suffix of the results file name (e.g. noisy-depth)")
     args = ap.parse_args(argv)
     scene = load_scene(args.dataset, args.root, args.scene)
-    gt = load_ground_truth(scene_ground_truth(scene))
-    lines = ["| method | lines | PREC@5cm | RECALL@5cm | F@5cm | R@5mm | R@50mm | mapping time |",
-             "|---|---|---|---|---|---|---|---|"]
-    results = {}
+    gt_source = scene_ground_truth(scene)
+    gt = load_ground_truth(gt_source)
+    label = args.label or f"{scene.name} ({'mesh' if scene.gt_mesh is not None else 'fused depth'})"
+    rows, metrics = [], {}
+
+    def add(name, lm, seconds=None):
+        cells, metrics[name] = row(label if not rows else "", name, lm, gt, seconds)
+        rows.append(cells)
+
     for method in args.methods.split(","):
         lm = LineMap.load(map_scene(scene, args.out / method, args.preset, method))
-        seconds = lm.metadata.get("timings", {}).get("total_s")
-        text, results[method] = row(f"{method} `{args.preset}`" if method == "lipmap" else method, lm, gt, seconds)
-        lines.append(text)
+        add(f"{method} `{args.preset}`" if method == "lipmap" else method, lm, lm.metadata.get("timings", {}).get("total_s"))
         if method == "lipmap":
             edges = edge_line_mask(lm)
             if not edges.all():
-                text, results["lipmap-edges"] = row("lipmap, plane edges only", lm.subset(edges), gt, None)
-                lines.append(text)
+                add("(its plane edges only)", lm.subset(edges))
             for tol in filter(None, args.plane_depth_tols.split(",")):
                 out = args.out / f"lipmap-tol{tol}"
                 out.mkdir(parents=True, exist_ok=True)
-                for name in ("planes.h5", "lines2d.h5"):
+                for name in ("planes.h5", "lines2d.h5"):  # the same planes: their stamps match this conf's
                     if not (out / name).exists():
                         shutil.copy(args.out / method / name, out / name)
                 conf = {"preset": args.preset, "plane_depth_tol": float(tol)}
-                text, results[f"lipmap-tol{tol}"] = row(f"lipmap, plane_depth_tol {tol}",
-                                                        LineMap.load(map_scene(scene, out, conf, method)), gt, None)
-                lines.append(text)
+                add(f"`--plane-depth-tol {tol}`", LineMap.load(map_scene(scene, out, conf, method)))
     print(f"{scene.dataset} {scene.name}:")
-    print("\n".join(lines))
-    (args.out / "mapping_table.json").write_text(json.dumps(results, indent=1, default=float))
+    print("\n".join("| " + " | ".join(map(str, r)) + " |" for r in [HEADER, *rows]))
+    name = f"mapping-{scene.dataset}-{scene.name}" + (f"-{args.tag}" if args.tag else "")
+    results.write(name, {"scene": scene.name, "dataset": scene.dataset, "ground_truth": str(gt_source),
+                         "metrics": metrics, "table": {"header": HEADER, "rows": rows}})
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ For a mesh:
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Optional, Sequence, Union
 
@@ -41,11 +41,12 @@ from scipy.spatial import cKDTree
 
 from . import logger
 from .errors import InputError
+from .presets import resolve
 from .geometry import sample_segments
 
 
 @dataclass(frozen=True)
-class EvalConf:
+class EvalConfig:
     m1_thresholds: tuple = (0.05,)  # metres
     m1_line_samples: int = 100
     m2_taus_mm: tuple = (5, 10, 50)
@@ -61,10 +62,15 @@ class EvalConf:
 
 
 confs = {
-    "default": EvalConf(),
-    "fast": EvalConf(m2_samples=200, mesh_distance="sample", mesh_samples_per_m2=10000.0),
-    "paper-1-5-10mm": EvalConf(m2_taus_mm=(1, 5, 10)),
+    "default": EvalConfig(),
+    "fast": EvalConfig(m2_samples=200, mesh_distance="sample", mesh_samples_per_m2=10000.0),
+    "paper-1-5-10mm": EvalConfig(m2_taus_mm=(1, 5, 10)),
 }
+
+
+def get_conf(conf=None) -> EvalConfig:
+    """An :class:`EvalConfig` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
+    return resolve(conf, confs, "mapping evaluation", default="default")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -76,7 +82,7 @@ class GroundTruth:
 
     points: np.ndarray
     mesh: Optional[object] = None
-    conf: EvalConf = field(default_factory=EvalConf)
+    conf: EvalConfig = field(default_factory=EvalConfig)
 
     def __post_init__(self):
         self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 3)
@@ -180,10 +186,10 @@ def load_points(path) -> np.ndarray:
     return pts
 
 
-def load_ground_truth(gt, conf: Optional[EvalConf] = None) -> GroundTruth:
+def load_ground_truth(gt, conf: Optional[EvalConfig] = None) -> GroundTruth:
     """A :class:`GroundTruth` from a path (mesh with faces -> mesh GT; otherwise points), a
     trimesh.Trimesh, a (P, 3) array, or a GroundTruth (returned with ``conf`` applied)."""
-    conf = conf or EvalConf()
+    conf = conf or EvalConfig()
     if isinstance(gt, GroundTruth):
         return GroundTruth(gt.points, gt.mesh, conf)
     import trimesh
@@ -391,7 +397,7 @@ def m2_metrics(lines: np.ndarray, gt: GroundTruth, taus_mm=(5, 10, 50), n_sample
 
 
 def evaluate_linemap(
-    linemap, gt, conf: Union[None, str, EvalConf] = None, **overrides
+    linemap, gt, conf: Union[None, str, EvalConfig] = None, **overrides
 ) -> dict:
     """M1 (line and junction level) and M2 of a line map against a GT mesh or point cloud.
 
@@ -399,7 +405,7 @@ def evaluate_linemap(
         linemap: a :class:`~lipmap.linemap.LineMap`, a path to ``linemap.h5`` or (N, 2, 3) lines
             (then no supports are reported).
         gt: mesh/point-cloud path, trimesh.Trimesh, (P, 3) points or :class:`GroundTruth`.
-        conf: preset name ("default", "fast", "paper-1-5-10mm") or :class:`EvalConf`; keyword
+        conf: preset name ("default", "fast", "paper-1-5-10mm") or :class:`EvalConfig`; keyword
             overrides are applied on top (e.g. ``m1_thresholds=(0.02, 0.05)``).
 
     Returns:
@@ -409,10 +415,9 @@ def evaluate_linemap(
     """
     from .linemap import LineMap
 
-    if isinstance(conf, str) or conf is None:
-        conf = confs[conf or "default"]
+    conf = get_conf(conf)
     if overrides:
-        conf = EvalConf(**{**asdict(conf), **overrides})
+        conf = replace(conf, **overrides)
     if isinstance(linemap, (str, Path)):
         linemap = LineMap.load(linemap)
     supports = None
@@ -446,16 +451,23 @@ def evaluate_linemap(
     return res
 
 
-def main(linemap_path, gt, out_json, conf: Union[None, str, EvalConf] = None, overwrite: bool = False) -> Path:
-    """Step entry: evaluate ``linemap.h5`` against ``gt`` and write the metrics to ``out_json``."""
+def main(linemap_path, gt, out_json, conf: Union[None, str, EvalConfig] = None, overwrite: bool = False) -> Path:
+    """Step entry: evaluate ``linemap.h5`` against ``gt`` and write the metrics to ``out_json`` (reused when
+    made from the same map, ground truth and settings)."""
+    from .artifacts import Stamp, read_stamp, reuse, write_stamp
     from .imageio import write_text_atomic
 
     out_json = Path(out_json)
-    if out_json.exists() and not overwrite:
-        logger.info("Skipping evaluation: %s exists.", out_json)
+    conf = get_conf(conf)
+    lm_stamp = read_stamp(linemap_path) if isinstance(linemap_path, (str, Path)) else None
+    gt_key = str(Path(gt).resolve()) if isinstance(gt, (str, Path)) else "in-memory"
+    stamp = Stamp("map-eval", {"conf": asdict(conf), "gt": gt_key,
+                               "linemap": lm_stamp.digest if lm_stamp else str(linemap_path)})
+    if reuse(out_json, stamp, overwrite, "map evaluation", replace_stale=True):
         return out_json
     res = evaluate_linemap(linemap_path, gt, conf)
     write_text_atomic(out_json, json.dumps(res, indent=2))
+    write_stamp(out_json, stamp)
     logger.info("Line map metrics: %s", format_metrics(res))
     return out_json
 
@@ -471,7 +483,7 @@ def format_metrics(res: dict) -> str:
 
 __all__ = [
     "scene_ground_truth",
-    "EvalConf",
+    "EvalConfig",
     "confs",
     "GroundTruth",
     "load_points",

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import json
 import warnings
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable, Optional, Sequence, Union
 
@@ -50,7 +50,7 @@ from .presets import resolve
 
 
 @dataclass(frozen=True)
-class LiftConf:
+class LiftConfig:
     n_samples: int = 32
     end_margin_px: float = 2.0  # samples start this far inside each endpoint (<= 10% of the length)
     window: int = 1  # median over a (2w+1)^2 window
@@ -73,15 +73,15 @@ class LiftConf:
 
 
 confs = {
-    "lift": LiftConf(),
-    "lift-merge": LiftConf(merge=True),
+    "lift": LiftConfig(),
+    "lift-merge": LiftConfig(merge=True),
     # Kinect depth is too noisy for 0.01 rad across views: a looser merge for real RGB-D data
-    "lift-merge-loose": LiftConf(merge=True, merge_max_angle=0.03, merge_max_dist=3.0),
+    "lift-merge-loose": LiftConfig(merge=True, merge_max_angle=0.03, merge_max_dist=3.0),
 }
 
 
-def get_conf(conf: Union[None, str, dict, LiftConf] = None) -> LiftConf:
-    """A :class:`LiftConf` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
+def get_conf(conf: Union[None, str, dict, LiftConfig] = None) -> LiftConfig:
+    """A :class:`LiftConfig` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
     return resolve(conf, confs, "lift", default="lift")
 
 
@@ -104,7 +104,7 @@ def _window_median(depth: np.ndarray, uv: np.ndarray, w: int) -> np.ndarray:
         return np.nanmedian(vals, axis=-1)
 
 
-def _fit_inverse_depth(A: np.ndarray, z: np.ndarray, conf: LiftConf, check_jumps: bool = True):
+def _fit_inverse_depth(A: np.ndarray, z: np.ndarray, conf: LiftConfig, check_jumps: bool = True):
     """Robust least squares of inverse depth 1/z = A @ p over the valid samples of a profile.
 
     Points on ONE 3D line (or plane) have an inverse depth that is affine in the image coordinates
@@ -140,7 +140,7 @@ def _fit_inverse_depth(A: np.ndarray, z: np.ndarray, conf: LiftConf, check_jumps
     return p, float(np.mean(zv[inl]))
 
 
-def lift_view_lines(lines2d: np.ndarray, depth: np.ndarray, camera, conf: Union[None, str, LiftConf] = None):
+def lift_view_lines(lines2d: np.ndarray, depth: np.ndarray, camera, conf: Union[None, str, LiftConfig] = None):
     """Lift the 2D lines of one view into its camera frame.
 
     Args:
@@ -177,7 +177,7 @@ def lift_view_lines(lines2d: np.ndarray, depth: np.ndarray, camera, conf: Union[
     return out, ok
 
 
-def _sample_along_lines(L: np.ndarray, conf: LiftConf):
+def _sample_along_lines(L: np.ndarray, conf: LiftConfig):
     """Sample parameters t (N, n) and points uv (N, n, 2) inside each segment's end margins, and its 2D normal (N, 2)."""
     p0, p1 = L[:, :2], L[:, 2:]
     length = np.linalg.norm(p1 - p0, axis=1)
@@ -189,7 +189,7 @@ def _sample_along_lines(L: np.ndarray, conf: LiftConf):
     return t, uv, normal2
 
 
-def _depth_profiles(depth: np.ndarray, uv: np.ndarray, normal2: np.ndarray, conf: LiftConf):
+def _depth_profiles(depth: np.ndarray, uv: np.ndarray, normal2: np.ndarray, conf: LiftConfig):
     """The profile offsets and the window-median depth profiles (5 arrays (N, n)) on and beside each line."""
     # profile k: offset (in side_offset units) along the 2D normal: 0 = on the line, +-1 near, +-2 far
     offsets = (0.0, -1.0, -2.0, 1.0, 2.0)
@@ -206,7 +206,7 @@ def _rays_z1(q: np.ndarray, params) -> np.ndarray:
     return np.stack([(q[..., 0] - cx) / fx, (q[..., 1] - cy) / fy, np.ones(q.shape[:-1])], -1)
 
 
-def _profile_candidates(t, uv, normal2, profiles, offsets, end_xy, params, conf: LiftConf) -> list:
+def _profile_candidates(t, uv, normal2, profiles, offsets, end_xy, params, conf: LiftConfig) -> list:
     """One line's usable depth profiles as (mean depth, inverse depth at the 2 endpoints, "center" | "side")."""
     fx, fy, cx, cy = params
     ones = np.ones(conf.n_samples)
@@ -228,7 +228,7 @@ def _profile_candidates(t, uv, normal2, profiles, offsets, end_xy, params, conf:
     return cands
 
 
-def _choose_profile(cands: list, profiles: list, conf: LiftConf):
+def _choose_profile(cands: list, profiles: list, conf: LiftConfig):
     """The candidate whose depth the line takes, or None (no candidate, or only background behind an edge)."""
     if not cands:
         return None
@@ -248,7 +248,7 @@ def _choose_profile(cands: list, profiles: list, conf: LiftConf):
     return best
 
 
-def _segment_on_end_rays(inv: np.ndarray, end_rays: np.ndarray, conf: LiftConf):
+def _segment_on_end_rays(inv: np.ndarray, end_rays: np.ndarray, conf: LiftConfig):
     """The 3D segment (2, 3) at inverse depths ``inv`` on the endpoint rays; None if too far, too short or end-on."""
     if np.any(inv <= 1.0 / conf.max_depth):
         return None
@@ -265,14 +265,14 @@ def _segment_on_end_rays(inv: np.ndarray, end_rays: np.ndarray, conf: LiftConf):
 # ----------------------------------------------------------------------------------------------
 # map
 # ----------------------------------------------------------------------------------------------
-def lift_linemap(scene_views: Sequence, lines, conf: Union[None, str, dict, LiftConf] = None,
+def lift_linemap(scene_views: Sequence, lines, conf: Union[None, str, dict, LiftConfig] = None,
                  depth_of: Optional[Callable] = None, skip: Optional[dict] = None) -> LineMap:
     """Lift the detected lines of every view with its depth into one world :class:`LineMap`.
 
     Args:
         scene_views: posed :class:`~lipmap.scene.View` objects with depth.
         lines: ``lines2d.h5`` holding lines for those views, or {view name: (N, 4) segments}.
-        conf: preset ("lift", "lift-merge", "lift-merge-loose"), dict of overrides or :class:`LiftConf`.
+        conf: preset ("lift", "lift-merge", "lift-merge-loose"), dict of overrides or :class:`LiftConfig`.
         depth_of: ``f(view) -> (H, W) depth`` (default: the view's sensor depth, ``view.load_depth()``);
             the mapping uses it to lift lines onto its optimized planes.
         skip: {view name: indices of 2D lines not to lift} (lines another method already explains).
@@ -318,7 +318,7 @@ def lift_linemap(scene_views: Sequence, lines, conf: Union[None, str, dict, Lift
     return LineMap(lines, obs, metadata=meta)
 
 
-def _merge(lines: np.ndarray, obs: list, per_view: list, conf: LiftConf):
+def _merge(lines: np.ndarray, obs: list, per_view: list, conf: LiftConfig):
     """Union near-duplicate lifted lines across views (track-builder test + 3D check)."""
     n = len(lines)
     parent = np.arange(n)
@@ -372,16 +372,20 @@ def _merge(lines: np.ndarray, obs: list, per_view: list, conf: LiftConf):
     return np.array(out_lines).reshape(-1, 2, 3), out_obs
 
 
-def main(scene_views: Sequence, lines_h5, out_h5, conf: Union[None, str, dict, LiftConf] = None,
+def main(scene_views: Sequence, lines_h5, out_h5, conf: Union[None, str, dict, LiftConfig] = None,
          overwrite: bool = False) -> Path:
-    """Step entry: lift lines and write ``linemap.h5`` (skipped when it exists unless ``overwrite``)."""
+    """Step entry: lift lines and write ``linemap.h5`` (reused when the same settings and lines made it)."""
+    from .artifacts import Stamp, read_stamp, reuse, views_key
+
     out_h5 = Path(out_h5)
-    if out_h5.exists() and not overwrite:
-        logger.info("Skipping lift: %s exists.", out_h5)
-        return out_h5
     conf = get_conf(conf)
+    lines_stamp = read_stamp(lines_h5)
+    stamp = Stamp("linemap", {"method": "lift", "lift": asdict(conf), "views": views_key(scene_views),
+                              "lines": lines_stamp.digest if lines_stamp else str(Path(lines_h5).resolve())})
+    if reuse(out_h5, stamp, overwrite, "lift"):
+        return out_h5
     logger.info("Lifting lines with %s.", json.dumps(asdict(conf)))
-    return lift_linemap(scene_views, lines_h5, conf).save(out_h5)
+    return lift_linemap(scene_views, lines_h5, conf).save(out_h5, stamp=stamp)
 
 
-__all__ = ["LiftConf", "confs", "get_conf", "lift_view_lines", "lift_linemap", "main"]
+__all__ = ["LiftConfig", "confs", "get_conf", "lift_view_lines", "lift_linemap", "main"]

@@ -39,7 +39,7 @@ REFERENCE_SIZE = (640, 480)
 
 
 @dataclass(frozen=True)
-class LineDetectorConf:
+class LineDetectorConfig:
     """LSD settings. ``min_length`` is in pixels at 640x480 and scales with the image diagonal."""
 
     name: str = "lsd"
@@ -63,22 +63,22 @@ class LineDetectorConf:
 
 
 confs = {
-    "lsd": LineDetectorConf(),
-    "lsd-fast": LineDetectorConf(refine="std"),
-    "lsd-dense": LineDetectorConf(min_length=10.0, max_lines=4000),
-    "lsd-long": LineDetectorConf(min_length=30.0, max_lines=500),
+    "lsd": LineDetectorConfig(),
+    "lsd-fast": LineDetectorConfig(refine="std"),
+    "lsd-dense": LineDetectorConfig(min_length=10.0, max_lines=4000),
+    "lsd-long": LineDetectorConfig(min_length=30.0, max_lines=500),
 }
 
 
-def get_conf(conf: Union[None, str, LineDetectorConf, dict] = None) -> LineDetectorConf:
-    """A :class:`LineDetectorConf` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
+def get_conf(conf: Union[None, str, LineDetectorConfig, dict] = None) -> LineDetectorConfig:
+    """A :class:`LineDetectorConfig` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
     return resolve(conf, confs, "2D line detector", default="lsd")
 
 
 # ----------------------------------------------------------------------------------------------
 # detection
 # ----------------------------------------------------------------------------------------------
-def _lsd(conf: LineDetectorConf):
+def _lsd(conf: LineDetectorConfig):
     import cv2
 
     refine = {"none": cv2.LSD_REFINE_NONE, "std": cv2.LSD_REFINE_STD, "adv": cv2.LSD_REFINE_ADV}[conf.refine]
@@ -99,12 +99,12 @@ def filter_lines(lines: np.ndarray, scores: np.ndarray, min_length: float, max_l
     return lines[order], scores[order]
 
 
-def detect_lines_image(image: np.ndarray, conf: Union[None, str, LineDetectorConf] = None):
+def detect_lines_image(image: np.ndarray, conf: Union[None, str, LineDetectorConfig] = None):
     """LSD on one image.
 
     Args:
         image: :math:`(H, W)` uint8 grayscale or :math:`(H, W, 3)` RGB.
-        conf: preset name or :class:`LineDetectorConf`.
+        conf: preset name or :class:`LineDetectorConfig`.
 
     Returns:
         **lines** :math:`(N, 4)` float64 (x1, y1, x2, y2), COLMAP pixel convention, longest first;
@@ -219,7 +219,7 @@ def _image_items(images, image_root=None):
 def detect_lines(
     images: Sequence,
     out_h5,
-    conf: Union[None, str, LineDetectorConf, dict] = None,
+    conf: Union[None, str, LineDetectorConfig, dict] = None,
     overwrite: bool = False,
     image_root=None,
     commit_every: int = 100,
@@ -454,7 +454,7 @@ def import_lines(
 
 
 __all__ = [
-    "LineDetectorConf",
+    "LineDetectorConfig",
     "confs",
     "get_conf",
     "detect_lines_image",

@@ -616,12 +616,10 @@ def pr_curve(linemap, gt, thresholds=None, conf=None) -> dict:
     Returns:
         ``{"thresholds": (T,), "line": {"precision", "recall", "f"}, "junction": {...}}`` (arrays).
     """
-    from .evaluation import EvalConf, confs, load_ground_truth, m1_metrics
+    from .evaluation import get_conf, load_ground_truth, m1_metrics
     from .linemap import LineMap
 
-    if isinstance(conf, str) or conf is None:
-        conf = confs[conf or "default"]
-    assert isinstance(conf, EvalConf)
+    conf = get_conf(conf)
     if isinstance(linemap, (str, Path)):
         linemap = LineMap.load(linemap)
     lines = linemap.lines if isinstance(linemap, LineMap) else np.asarray(linemap, dtype=float).reshape(-1, 2, 3)

@@ -23,7 +23,7 @@ from lipmap.poses import make_T
 
 
 @dataclass
-class PointPoseConf:
+class PointPoseConfig:
     """RANSAC + bundle options of the point-only initial pose (hloc's defaults)."""
 
     max_reproj_error: float = 12.0  # px, as hloc's localize_sfm
@@ -53,7 +53,7 @@ def _failure(n: int, reason: str) -> dict:
     }
 
 
-def estimate_pose_points(p2d: np.ndarray, p3d: np.ndarray, camera, conf: Optional[PointPoseConf] = None) -> dict:
+def estimate_pose_points(p2d: np.ndarray, p3d: np.ndarray, camera, conf: Optional[PointPoseConfig] = None) -> dict:
     """Absolute pose from 2D-3D point matches (PoseLib LO-RANSAC + bundle refinement).
 
     Never raises for a bad query: too few or degenerate matches give ``success=False``.
@@ -62,13 +62,13 @@ def estimate_pose_points(p2d: np.ndarray, p3d: np.ndarray, camera, conf: Optiona
         p2d: (N, 2) pixel coordinates, COLMAP convention.
         p3d: (N, 3) world points.
         camera: :class:`lipmap.scene.Camera` or a PoseLib camera dict.
-        conf: :class:`PointPoseConf`.
+        conf: :class:`PointPoseConfig`.
 
     Returns:
         dict with **cam_from_world** (4, 4) or None, **inliers** (N,) bool, **n_inliers**,
         **n_matches**, **success**, and PoseLib's **info** (iterations, refinements, ...) on success.
     """
-    conf = conf or PointPoseConf()
+    conf = conf or PointPoseConfig()
     p2d = np.asarray(p2d, dtype=np.float64).reshape(-1, 2)
     p3d = np.asarray(p3d, dtype=np.float64).reshape(-1, 3)
     n = len(p2d)
@@ -133,7 +133,7 @@ def subsample_matches(n: int, N: Optional[int], seed: int, query_name: str) -> n
 # joint point + line refinement
 # ----------------------------------------------------------------------------------------------
 @dataclass
-class PointLinePoseConf:
+class PointLinePoseConfig:
     """Options of the joint point+line pose (PoseLib PnPL: LO-RANSAC over points and lines + bundle).
 
     ``max_line_error`` is PoseLib's ``RansacOptions.max_epipolar_error``: the line inlier threshold,
@@ -153,7 +153,7 @@ class PointLinePoseConf:
 
 def estimate_pose_point_line(
     p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, lines3d: np.ndarray, camera,
-    initial: Optional[np.ndarray] = None, conf: Optional[PointLinePoseConf] = None,
+    initial: Optional[np.ndarray] = None, conf: Optional[PointLinePoseConfig] = None,
 ) -> dict:
     """Pose from 2D-3D points and 2D-3D lines with ``poselib.estimate_absolute_pose_pnpl``.
 
@@ -166,7 +166,7 @@ def estimate_pose_point_line(
         dict with **cam_from_world** (or None), **success**, **n_inliers** (points), **n_line_inliers**,
         **line_inliers** (M,) bool, **n_lines**; never raises for a bad query.
     """
-    conf = conf or PointLinePoseConf()
+    conf = conf or PointLinePoseConfig()
     p2d = np.asarray(p2d, dtype=np.float64).reshape(-1, 2)
     p3d = np.asarray(p3d, dtype=np.float64).reshape(-1, 3)
     l2 = np.asarray(lines2d, dtype=np.float64).reshape(-1, 2, 2)

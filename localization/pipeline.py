@@ -31,7 +31,7 @@ from lipmap.artifacts import Stamp, digest, scene_key, variant_dir, views_key
 from lipmap.imageio import write_text_atomic
 
 from . import evaluate as ev
-from .estimate import PointLinePoseConf, PointPoseConf, estimate_pose_point_line, estimate_pose_points, subsample_matches
+from .estimate import PointLinePoseConfig, PointPoseConfig, estimate_pose_point_line, estimate_pose_points, subsample_matches
 from .linequery import LineQuery, LineQueryConfig
 
 
@@ -46,8 +46,8 @@ class LocalizationConfig:
     points: str = "sift-n4096"  # localization.points preset (built-in SIFT)
     retrieval: str = "vlad64"  # localization.retrieval preset
     num_retrieved: int = 10
-    point_pose: PointPoseConf = field(default_factory=PointPoseConf)
-    point_line_pose: PointLinePoseConf = field(default_factory=PointLinePoseConf)
+    point_pose: PointPoseConfig = field(default_factory=PointPoseConfig)
+    point_line_pose: PointLinePoseConfig = field(default_factory=PointLinePoseConfig)
     line_query: LineQueryConfig = field(default_factory=LineQueryConfig)
     line_iters: int = 2  # line query -> refine, repeated with the refined pose
     mapping: str = "fast"  # lipmap.mapping.pipeline preset

@@ -39,7 +39,7 @@ from .hloc_io import ModelIndex, h5_update, list_h5_names
 
 
 @dataclass
-class SiftConf:
+class SiftConfig:
     """pycolmap SIFT options (COLMAP defaults except the keypoint budget)."""
 
     max_keypoints: int = 4096  # COLMAP keeps the coarsest-scale features when over budget
@@ -56,7 +56,7 @@ class SiftConf:
 
 
 @dataclass
-class MatchConf:
+class MatchConfig:
     """Descriptor matching: mutual nearest neighbour + Lowe's ratio test (hloc's NN-ratio)."""
 
     ratio: float = 0.8  # on Euclidean distances, as hloc and COLMAP
@@ -69,7 +69,7 @@ class MatchConf:
 
 
 @dataclass
-class PairsConf:
+class PairsConfig:
     """Mapping pairs from known poses: frustum overlap (sampled at nominal depths) + viewing angle."""
 
     num_neighbors: int = 10
@@ -80,7 +80,7 @@ class PairsConf:
 
 
 @dataclass
-class TriangulationConf:
+class TriangulationConfig:
     """Geometric verification with the known poses, then COLMAP's triangulator (poses held fixed)."""
 
     max_epipolar_error: float = 4.0  # px, Sampson distance w.r.t. the known relative pose
@@ -93,25 +93,25 @@ class TriangulationConf:
 
 
 @dataclass
-class PointsConf:
+class PointsConfig:
     """The whole built-in point pipeline; ``name`` records the settings in artifact names."""
 
-    sift: SiftConf = field(default_factory=SiftConf)
-    match: MatchConf = field(default_factory=MatchConf)
-    pairs: PairsConf = field(default_factory=PairsConf)
-    triangulation: TriangulationConf = field(default_factory=TriangulationConf)
+    sift: SiftConfig = field(default_factory=SiftConfig)
+    match: MatchConfig = field(default_factory=MatchConfig)
+    pairs: PairsConfig = field(default_factory=PairsConfig)
+    triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
 
 
 confs = {
-    "sift-n4096": PointsConf(),
-    "sift-n2048": PointsConf(sift=SiftConf(max_keypoints=2048)),
+    "sift-n4096": PointsConfig(),
+    "sift-n2048": PointsConfig(sift=SiftConfig(max_keypoints=2048)),
     # fast: no upsampling; for tests and quick runs
-    "sift-n1024-fast": PointsConf(sift=SiftConf(max_keypoints=1024, first_octave=0)),
+    "sift-n1024-fast": PointsConfig(sift=SiftConfig(max_keypoints=1024, first_octave=0)),
 }
 
 
-def get_conf(conf=None) -> PointsConf:
-    """A :class:`PointsConf` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
+def get_conf(conf=None) -> PointsConfig:
+    """A :class:`PointsConfig` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
     return resolve(conf, confs, "point pipeline", default="sift-n4096")
 
 
@@ -136,7 +136,7 @@ def colmap_quiet():
         pycolmap.logging.minloglevel = old
 
 
-def _sift_extractor(conf: SiftConf):
+def _sift_extractor(conf: SiftConfig):
     import pycolmap
 
     opts = pycolmap.FeatureExtractionOptions()
@@ -152,7 +152,7 @@ def _sift_extractor(conf: SiftConf):
         return pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu)
 
 
-def sift_features(gray: np.ndarray, conf: SiftConf, extractor=None) -> dict:
+def sift_features(gray: np.ndarray, conf: SiftConfig, extractor=None) -> dict:
     """SIFT on one grayscale image.
 
     Args:
@@ -175,20 +175,20 @@ def sift_features(gray: np.ndarray, conf: SiftConf, extractor=None) -> dict:
     return {"keypoints": kp[:, :2], "descriptors": d, "scales": kp[:, 2], "oris": kp[:, 3]}
 
 
-def extract_sift(views: Sequence, out_h5, conf: Optional[SiftConf] = None, overwrite: bool = False, chunk: int = 16) -> Path:
+def extract_sift(views: Sequence, out_h5, conf: Optional[SiftConfig] = None, overwrite: bool = False, chunk: int = 16) -> Path:
     """Extract SIFT for every view into an hloc ``features.h5``; images already there are skipped.
 
     Args:
         views: objects with ``.name`` and ``.load_color(gray=True)`` (:class:`lipmap.scene.View`).
         out_h5: the features file (created or extended).
-        conf: :class:`SiftConf`.
+        conf: :class:`SiftConfig`.
 
     Written per image: ``keypoints`` (N, 2) float32 hloc convention (COLMAP - 0.5),
     ``descriptors`` (128, N) float16 (lossless: COLMAP quantises SIFT to uint8 / 512), ``scores``
     (N,) = the SIFT scale (pycolmap 4 exposes no detector response; larger scales are the ones
     COLMAP keeps first), ``scales``, ``oris``, ``image_size`` [w, h]; attrs ``uncertainty`` = 1 px.
     """
-    conf = conf or SiftConf()
+    conf = conf or SiftConfig()
     out_h5 = Path(out_h5)
     stamp = Stamp("features", {"sift": asdict(conf)})
     fresh = not reuse(out_h5, stamp, overwrite, "SIFT features")
@@ -225,12 +225,12 @@ def extract_sift(views: Sequence, out_h5, conf: Optional[SiftConf] = None, overw
 # ----------------------------------------------------------------------------------------------
 
 
-def frustum_overlap(view_a, view_b, conf: Optional[PairsConf] = None) -> float:
+def frustum_overlap(view_a, view_b, conf: Optional[PairsConfig] = None) -> float:
     """Fraction of a grid of ``view_a``'s pixels, at nominal depths, that ``view_b`` sees in its image."""
-    return float(_overlap_matrix([view_a, view_b], conf or PairsConf())[0, 1])
+    return float(_overlap_matrix([view_a, view_b], conf or PairsConfig())[0, 1])
 
 
-def _overlap_matrix(views, conf: PairsConf) -> np.ndarray:
+def _overlap_matrix(views, conf: PairsConfig) -> np.ndarray:
     from lipmap.geometry import project_points
     from lipmap.poses import invert_T
 
@@ -257,12 +257,12 @@ def _overlap_matrix(views, conf: PairsConf) -> np.ndarray:
     return ov
 
 
-def pairs_from_poses(views: Sequence, out_path=None, conf: Optional[PairsConf] = None) -> list[tuple[str, str]]:
+def pairs_from_poses(views: Sequence, out_path=None, conf: Optional[PairsConfig] = None) -> list[tuple[str, str]]:
     """Covisible pairs of posed images: for each image its ``num_neighbors`` best partners by
     symmetric frustum overlap (min of both directions), among those within ``max_angle_deg`` of
     viewing direction and with overlap >= ``min_overlap``. Each unordered pair is listed once, in
     the order of ``views``. Written as an hloc pairs file when ``out_path`` is given."""
-    conf = conf or PairsConf()
+    conf = conf or PairsConfig()
     n = len(views)
     ov = _overlap_matrix(views, conf)
     sym = np.minimum(ov, ov.T)
@@ -288,7 +288,7 @@ def pairs_from_poses(views: Sequence, out_path=None, conf: Optional[PairsConf] =
 # ----------------------------------------------------------------------------------------------
 
 
-def mutual_nn_ratio(desc0: np.ndarray, desc1: np.ndarray, conf: Optional[MatchConf] = None):
+def mutual_nn_ratio(desc0: np.ndarray, desc1: np.ndarray, conf: Optional[MatchConfig] = None):
     """Match two sets of unit descriptors.
 
     Args:
@@ -300,7 +300,7 @@ def mutual_nn_ratio(desc0: np.ndarray, desc1: np.ndarray, conf: Optional[MatchCo
     """
     import torch
 
-    conf = conf or MatchConf()
+    conf = conf or MatchConfig()
     n0, n1 = len(desc0), len(desc1)
     matches0 = np.full(n0, -1, np.int32)
     scores0 = np.zeros(n0, np.float32)
@@ -340,7 +340,7 @@ class _DescriptorCache:
         return self.items[name]
 
 
-def match_features(pairs, features_h5, out_h5, conf: Optional[MatchConf] = None, overwrite: bool = False, chunk: int = 64) -> Path:
+def match_features(pairs, features_h5, out_h5, conf: Optional[MatchConfig] = None, overwrite: bool = False, chunk: int = 64) -> Path:
     """Match the descriptors of image pairs into an hloc ``matches.h5``.
 
     Args:
@@ -353,7 +353,7 @@ def match_features(pairs, features_h5, out_h5, conf: Optional[MatchConf] = None,
     """
     import h5py
 
-    conf = conf or MatchConf()
+    conf = conf or MatchConfig()
     pairs_path = Path(pairs) if isinstance(pairs, (str, Path)) else None
     pairs = hloc_io.read_pairs(pairs_path) if pairs_path is not None else [tuple(p) for p in pairs]
     hloc_io.check_pairs_in_features(pairs, features_h5, pairs_path)
@@ -421,7 +421,7 @@ def triangulate_map(
     pairs,
     matches_h5,
     sfm_dir,
-    conf: Optional[TriangulationConf] = None,
+    conf: Optional[TriangulationConfig] = None,
     overwrite: bool = False,
 ) -> Path:
     """Triangulate matched SIFT features with the KNOWN mapping poses into a COLMAP model.
@@ -441,7 +441,7 @@ def triangulate_map(
     Returns:
         ``sfm_dir``; skipped when it already holds a model, unless ``overwrite``.
     """
-    conf = conf or TriangulationConf()
+    conf = conf or TriangulationConfig()
     sfm_dir = Path(sfm_dir)
     if not overwrite and (sfm_dir / "points3D.bin").exists() and (sfm_dir / "images.bin").exists():
         logger.info("Skipping triangulation: %s exists.", sfm_dir)
@@ -477,7 +477,7 @@ def _unique_pairs(pairs: list) -> list:
 
 
 def _triangulate_atomically(sfm_dir: Path, mapping_views: Sequence, features_h5, pairs: list, matches_h5,
-                            conf: TriangulationConf):
+                            conf: TriangulationConfig):
     """Triangulate in a temporary folder renamed to ``sfm_dir`` at the end (never a partial model); log the model."""
     import shutil
 
@@ -503,7 +503,7 @@ def _triangulate_atomically(sfm_dir: Path, mapping_views: Sequence, features_h5,
     )
 
 
-def _triangulation_options(conf: TriangulationConf):
+def _triangulation_options(conf: TriangulationConfig):
     """COLMAP's triangulator options from ``conf``, with the intrinsics held fixed."""
     import pycolmap
 
@@ -524,7 +524,7 @@ def _triangulation_options(conf: TriangulationConf):
 
 
 def _triangulate_into(tmp: Path, mapping_views: Sequence, features_h5, pairs: list, matches_h5,
-                      conf: TriangulationConf):
+                      conf: TriangulationConfig):
     """Write the database and the triangulated model's files into ``tmp``; returns the model."""
     import pycolmap
 
@@ -542,7 +542,7 @@ def _triangulate_into(tmp: Path, mapping_views: Sequence, features_h5, pairs: li
     return rec
 
 
-def _reconstruction_and_database(mapping_views, features_h5, pairs, matches_h5, db_path, conf: TriangulationConf):
+def _reconstruction_and_database(mapping_views, features_h5, pairs, matches_h5, db_path, conf: TriangulationConfig):
     """The known-pose Reconstruction (no points) and a COLMAP database of keypoints + verified matches."""
     import pycolmap
 
@@ -734,14 +734,14 @@ def point_matches_from_hloc(query: str, sfm_dir, features_h5, matches_h5, pairs,
 # ----------------------------------------------------------------------------------------------
 
 
-def build_point_map(mapping_views: Sequence, out_dir, conf: Optional[PointsConf] = None, overwrite: bool = False) -> dict:
+def build_point_map(mapping_views: Sequence, out_dir, conf: Optional[PointsConfig] = None, overwrite: bool = False) -> dict:
     """Mapping side of the built-in pipeline: SIFT, covisible pairs, matches, triangulation.
 
     Returns:
         dict of artifact paths: ``features``, ``pairs``, ``matches``, ``sfm`` and per-step
         ``timings`` (seconds; 0 when a step was skipped).
     """
-    conf = conf or PointsConf()
+    conf = conf or PointsConfig()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     features = out_dir / f"feats-{conf.sift.name}.h5"
@@ -776,7 +776,7 @@ def match_queries(
     mapping_names: Sequence[str],
     features_h5,
     out_dir,
-    conf: Optional[PointsConf] = None,
+    conf: Optional[PointsConfig] = None,
     retrieval=None,
     pairs=None,
     overwrite: bool = False,
@@ -785,16 +785,16 @@ def match_queries(
     pairs file), matching against the retrieved mapping images.
 
     Args:
-        retrieval: :class:`localization.retrieval.RetrievalConf` (default VLAD top-10) - unused
+        retrieval: :class:`localization.retrieval.RetrievalConfig` (default VLAD top-10) - unused
             when ``pairs`` is given.
         pairs: an existing query pairs file / list to use instead of retrieval.
 
     Returns:
         dict with ``pairs`` (path), ``matches`` (path), ``timings`` (seconds per step).
     """
-    from .retrieval import RetrievalConf, pairs_from_retrieval
+    from .retrieval import RetrievalConfig, pairs_from_retrieval
 
-    conf = conf or PointsConf()
+    conf = conf or PointsConfig()
     out_dir = Path(out_dir)
     timings = {}
     t = time.time()
@@ -802,7 +802,7 @@ def match_queries(
     timings["extract"] = time.time() - t
     t = time.time()
     if pairs is None:
-        rconf = retrieval or RetrievalConf()
+        rconf = retrieval or RetrievalConfig()
         pairs = out_dir / f"pairs-query-{rconf.name}-top{rconf.num_retrieved}_{Path(features_h5).stem}.txt"
         pairs_from_retrieval([v.name for v in query_views], list(mapping_names), features_h5, pairs, rconf, overwrite=overwrite)
     timings["retrieval"] = time.time() - t
@@ -815,11 +815,11 @@ def match_queries(
 
 
 __all__ = [
-    "SiftConf",
-    "MatchConf",
-    "PairsConf",
-    "TriangulationConf",
-    "PointsConf",
+    "SiftConfig",
+    "MatchConfig",
+    "PairsConfig",
+    "TriangulationConfig",
+    "PointsConfig",
     "confs",
     "sift_features",
     "extract_sift",

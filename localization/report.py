@@ -2,7 +2,7 @@
 
     write_report(OUT, dataset) reads
         OUT/<dataset>/results.json, summary.md
-        OUT/<dataset>/<scene>/results.json, queries-<digest>.jsonl, linemap.h5, lines2d_query.h5, planes.ply
+        OUT/<dataset>/<scene>/results.json, the journal and the map it names (map-*/linemap.h5, planes.ply)
     and writes
         OUT/<dataset>/report/report.md
         OUT/<dataset>/report/accuracy_5cm5deg.png           ours (point, point+line) beside the paper's rows
@@ -495,7 +495,7 @@ def _load_linemap_or_note(n: str, r: SceneRun, notes: list):
     from lipmap.linemap import LineMap
 
     try:
-        return LineMap.load(r.folder / "linemap.h5")
+        return LineMap.load(r.map_path)
     except InputError as e:
         notes.append(f"{n}: no line map ({e}); no overlays or map renders.")
     return None
@@ -520,7 +520,7 @@ def _linemap_md(n: str, r: SceneRun, lm, scene, rep: Path, notes: list) -> list:
 
     try:
         written = viz.render_linemap_views(lm, scene, rep, f"linemap_{_slug(n)}.png", f"planes_{_slug(n)}.png",
-                                           map_dir=r.folder)
+                                           map_dir=r.map_path.parent)
     except Exception as e:  # noqa: BLE001 - one bad render must not lose the report
         logger.warning("Line map render of %s failed: %s", n, e)
         notes.append(f"{n}: line map render failed ({e}).")
@@ -539,10 +539,10 @@ def _query_examples_md(n: str, r: SceneRun, lm, scene, rep: Path, n_examples: in
         notes.append(f"{n}: no query has both a point-only and a point+line pose; no overlays.")
         return []
     lq = None
-    if viz.linemap_corners(lm, r.folder) is not None:
+    if viz.linemap_corners(lm, r.map_path.parent) is not None:
         from lipmap.mapping.assign import LineVisibility
 
-        lq = LineVisibility(lm.lines, viz.linemap_corners(lm, r.folder))
+        lq = LineVisibility(lm.lines, viz.linemap_corners(lm, r.map_path.parent))
     md = [f"### {n}", "", "| example | query | point only | point+line | line inliers |", "|---|---|---|---|---|"]
     imgs = []
     for kind, rank, q in ex:
@@ -575,7 +575,7 @@ def _overlay_or_note(n: str, r: SceneRun, q: str, kind: str, rank: int, scene, l
 
 def _refresh_summary_links(summary: Path, rep: Path, bars: Path, cdfs: dict):
     """Add or replace the plots block at the end of summary.md (nothing else is touched)."""
-    block = [BEGIN, "## Plots", "", f"Full visual report: [report/report.md](report/report.md)", "",
+    block = [BEGIN, "## Plots", "", "Full visual report: [report/report.md](report/report.md)", "",
              f"![accuracy at 5 cm / 5 deg](report/{bars.name})", ""]
     block += [f"![error distributions of {n}](report/{p.name})" for n, p in cdfs.items()]
     block += ["", END]

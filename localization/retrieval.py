@@ -27,7 +27,7 @@ from .hloc_io import h5_update, list_h5_names
 
 
 @dataclass
-class RetrievalConf:
+class RetrievalConfig:
     method: str = "vlad"  # vlad | bow
     num_words: int = 64  # VLAD: 64 x 128 = 8192-d; BoW wants more words (e.g. 1024)
     num_retrieved: int = 10
@@ -45,13 +45,13 @@ class RetrievalConf:
 
 
 confs = {
-    "vlad64": RetrievalConf(),
-    "bow1024": RetrievalConf(method="bow", num_words=1024),
+    "vlad64": RetrievalConfig(),
+    "bow1024": RetrievalConfig(method="bow", num_words=1024),
 }
 
 
-def get_conf(conf=None) -> RetrievalConf:
-    """A :class:`RetrievalConf` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
+def get_conf(conf=None) -> RetrievalConfig:
+    """A :class:`RetrievalConfig` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
     return resolve(conf, confs, "retrieval", default="vlad64")
 
 
@@ -60,7 +60,7 @@ def _descriptors(features_h5, name: str) -> np.ndarray:
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
-def train_codebook(features_h5, names: Sequence[str], conf: Optional[RetrievalConf] = None) -> dict:
+def train_codebook(features_h5, names: Sequence[str], conf: Optional[RetrievalConfig] = None) -> dict:
     """k-means visual words over a seeded random subset of the descriptors of ``names``.
 
     Returns:
@@ -68,7 +68,7 @@ def train_codebook(features_h5, names: Sequence[str], conf: Optional[RetrievalCo
     """
     from sklearn.cluster import MiniBatchKMeans
 
-    conf = conf or RetrievalConf()
+    conf = conf or RetrievalConfig()
     rng = np.random.default_rng(conf.seed)
     per_image = max(1, conf.max_train_descriptors // max(1, len(names)))
     chunks = []
@@ -99,7 +99,7 @@ def _assign(desc: np.ndarray, centers: np.ndarray) -> np.ndarray:
     return d2.argmin(1)
 
 
-def global_descriptor(desc: np.ndarray, codebook: dict, conf: Optional[RetrievalConf] = None) -> np.ndarray:
+def global_descriptor(desc: np.ndarray, codebook: dict, conf: Optional[RetrievalConfig] = None) -> np.ndarray:
     """One unit-norm global descriptor from local descriptors.
 
     Args:
@@ -109,7 +109,7 @@ def global_descriptor(desc: np.ndarray, codebook: dict, conf: Optional[Retrieval
         (K * D,) for VLAD (residuals summed per word, power- and intra-normalised, then L2), or
         (K,) for BoW (tf-idf, L2).
     """
-    conf = conf or RetrievalConf()
+    conf = conf or RetrievalConfig()
     centers = codebook["centers"]
     K, D = centers.shape
     if len(desc) == 0:
@@ -130,7 +130,7 @@ def _names_digest(names: Sequence[str]) -> str:
     return hashlib.sha1("\n".join(sorted(names)).encode()).hexdigest()[:12]
 
 
-def load_or_train_codebook(features_h5, db_names: Sequence[str], path, conf: RetrievalConf, overwrite: bool = False) -> dict:
+def load_or_train_codebook(features_h5, db_names: Sequence[str], path, conf: RetrievalConfig, overwrite: bool = False) -> dict:
     """The codebook cached at ``path`` (.npz) if it was trained on the same images and settings."""
     path = Path(path)
     key = f"{conf.name}-seed{conf.seed}-n{conf.max_train_descriptors}-{_names_digest(db_names)}"
@@ -146,7 +146,7 @@ def load_or_train_codebook(features_h5, db_names: Sequence[str], path, conf: Ret
     return cb
 
 
-def extract_global(features_h5, names: Sequence[str], out_h5, codebook: dict, conf: RetrievalConf, overwrite: bool = False) -> Path:
+def extract_global(features_h5, names: Sequence[str], out_h5, codebook: dict, conf: RetrievalConfig, overwrite: bool = False) -> Path:
     """Global descriptors of ``names`` into ``out_h5`` (hloc layout: ``<name>/global_descriptor``)."""
     out_h5 = Path(out_h5)
     done = set() if overwrite or not out_h5.exists() else set(list_h5_names(out_h5))
@@ -186,7 +186,7 @@ def pairs_from_retrieval(
     db_names: Sequence[str],
     features_h5,
     out_pairs,
-    conf: Optional[RetrievalConf] = None,
+    conf: Optional[RetrievalConfig] = None,
     global_h5=None,
     overwrite: bool = False,
 ) -> Path:
@@ -195,7 +195,7 @@ def pairs_from_retrieval(
     The codebook is trained on ``db_names`` only (cached beside ``out_pairs``); global descriptors
     go to ``global_h5`` (default ``global-<method><K>.h5`` beside ``out_pairs``).
     """
-    conf = conf or RetrievalConf()
+    conf = conf or RetrievalConfig()
     out_pairs = Path(out_pairs)
     stamp = Stamp("pairs-retrieval", {"retrieval": asdict(conf), "features": Path(features_h5).name,
                                       "queries": _names_digest(query_names), "db": _names_digest(db_names)})

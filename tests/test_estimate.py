@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 from lipmap.geometry import project_points
 from lipmap.poses import make_T, pose_errors
 from lipmap.scene import Camera
-from localization.estimate import PointPoseConf, estimate_pose_points, subsample_matches
+from localization.estimate import PointPoseConfig, estimate_pose_points, subsample_matches
 
 PINNED = [59, 567, 593, 650, 806]  # numpy default_rng (PCG64); changes only if numpy changes it
 CAM = Camera(640, 480, (525.0, 525.0, 320.0, 240.0))
@@ -69,7 +69,7 @@ class TestEstimatePosePoints:
 
     def test_seeded_deterministic(self):
         p2d, X, _, _ = synthetic(n=200, noise=2.0, outlier_frac=0.5, seed=2)
-        conf = PointPoseConf(seed=7)
+        conf = PointPoseConfig(seed=7)
         a = estimate_pose_points(p2d, X, CAM, conf)
         b = estimate_pose_points(p2d, X, CAM, conf)
         np.testing.assert_array_equal(a["cam_from_world"], b["cam_from_world"])
@@ -87,13 +87,13 @@ class TestEstimatePosePoints:
         p2d[:8] = np.nan
         assert estimate_pose_points(p2d, X, CAM)["success"] is False
         rng = np.random.default_rng(0)
-        r = estimate_pose_points(rng.uniform(0, 640, (30, 2)), rng.normal(size=(30, 3)), CAM, PointPoseConf(min_inliers=12))
+        r = estimate_pose_points(rng.uniform(0, 640, (30, 2)), rng.normal(size=(30, 3)), CAM, PointPoseConfig(min_inliers=12))
         assert r["inliers"].shape == (30,)  # garbage: whatever PoseLib says, no exception
 
     def test_threshold_is_used(self):
         p2d, X, T, _ = synthetic(n=200, noise=3.0, seed=5)
-        tight = estimate_pose_points(p2d, X, CAM, PointPoseConf(max_reproj_error=1.0))
-        loose = estimate_pose_points(p2d, X, CAM, PointPoseConf(max_reproj_error=12.0))
+        tight = estimate_pose_points(p2d, X, CAM, PointPoseConfig(max_reproj_error=1.0))
+        loose = estimate_pose_points(p2d, X, CAM, PointPoseConfig(max_reproj_error=12.0))
         assert tight["n_inliers"] < 0.6 * loose["n_inliers"]
 
 

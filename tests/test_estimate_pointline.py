@@ -3,7 +3,7 @@ from scipy.spatial.transform import Rotation
 
 from lipmap.poses import make_T, pose_errors
 from lipmap.scene import Camera
-from localization.estimate import PointLinePoseConf, estimate_pose_point_line, estimate_pose_points
+from localization.estimate import PointLinePoseConfig, estimate_pose_point_line, estimate_pose_points
 
 CAM = Camera(640, 480, (525, 525, 320, 240))
 
@@ -36,7 +36,7 @@ def test_lines_improve_a_few_noisy_points():
     for seed in range(8):
         T, x, X, l2, l3 = _scene(seed)
         pt = estimate_pose_points(x, X, CAM)
-        pl = estimate_pose_point_line(x, X, l2, l3, CAM, initial=pt["cam_from_world"], conf=PointLinePoseConf())
+        pl = estimate_pose_point_line(x, X, l2, l3, CAM, initial=pt["cam_from_world"], conf=PointLinePoseConfig())
         assert pl["success"] and pl["n_line_inliers"] >= 30
         gains.append(pose_errors(T, pt["cam_from_world"])[0] - pose_errors(T, pl["cam_from_world"])[0])
         assert pose_errors(T, pl["cam_from_world"])[0] < 0.01

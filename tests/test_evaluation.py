@@ -8,7 +8,7 @@ from trimesh.triangles import closest_point
 
 from lipmap.errors import InputError
 from lipmap.evaluation import (
-    EvalConf,
+    EvalConfig,
     evaluate_linemap,
     gt_from_depth,
     load_ground_truth,
@@ -69,7 +69,7 @@ class TestMeshGT:
     def test_partial_line_ratio(self):
         # a line leaving the box top: half of it is within 5 mm, the other half rises 0 -> 0.5 m
         line = np.array([[[-0.5, 0.0, 0.75], [0.5, 0.0, 0.75]], [[0.5, 0.0, 0.75], [1.0, 0.0, 1.25]]])
-        r = m2_metrics(line, load_ground_truth(BOX, EvalConf(gt_points_per_m2=1000)), (5,), 1000)
+        r = m2_metrics(line, load_ground_truth(BOX, EvalConfig(gt_points_per_m2=1000)), (5,), 1000)
         # line 0 fully in (1 m); line 1 within 5 mm for its first 0.005 / 0.5 fraction (plus one sample)
         seg2 = np.sqrt(0.5)
         assert r["R@5mm"] == pytest.approx(1.0 + seg2 * 0.0105, abs=2e-3)

@@ -6,7 +6,7 @@ import trimesh
 from lipmap.evaluation import evaluate_linemap, gt_from_depth
 from lipmap.geometry import clip_segments_to_image, point_line_distance, project_points, project_segments
 from lipmap.imageio import write_depth
-from lipmap.lift import LiftConf, lift_linemap, lift_view_lines, main
+from lipmap.lift import LiftConfig, lift_linemap, lift_view_lines, main
 from lipmap.linemap import LineMap
 from lipmap.lines2d import detect_lines, import_lines
 from lipmap.poses import invert_T, make_T
@@ -128,7 +128,7 @@ class TestLiftMap:
     def test_merge(self, scene_files):
         _, views, lines_h5 = scene_files
         single = lift_linemap(views, lines_h5)
-        merged = lift_linemap(views, lines_h5, LiftConf(merge=True, merge_max_angle=0.03, merge_max_dist=3.0))
+        merged = lift_linemap(views, lines_h5, LiftConfig(merge=True, merge_max_angle=0.03, merge_max_dist=3.0))
         assert len(merged) < len(single)
         multi = [i for i, t in enumerate(merged.tracks) if len({o.image_name for o in t}) == 2]
         assert len(multi) >= 3

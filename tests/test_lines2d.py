@@ -10,7 +10,7 @@ from lipmap import logger
 from lipmap.errors import InputError
 from lipmap.imageio import write_color
 from lipmap.lines2d import (
-    LineDetectorConf,
+    LineDetectorConfig,
     detect_lines,
     detect_lines_image,
     filter_lines,
@@ -60,7 +60,7 @@ class TestDetect:
         assert abs(abs(lines[0, 3] - lines[0, 1]) - 197.5) < 2.0
 
     def test_min_length_scales_with_image(self):
-        c = LineDetectorConf(min_length=15)
+        c = LineDetectorConfig(min_length=15)
         assert c.min_length_for(640, 480) == pytest.approx(15)
         assert c.min_length_for(1280, 960) == pytest.approx(30)
 

@@ -15,9 +15,9 @@ from lipmap.poses import make_T, pose_errors
 from lipmap.scene import Camera, View
 from localization import hloc_io, points
 from localization.points import (
-    MatchConf,
-    PairsConf,
-    SiftConf,
+    MatchConfig,
+    PairsConfig,
+    SiftConfig,
     extract_sift,
     fundamental_from_poses,
     match_features,
@@ -54,7 +54,7 @@ class TestSift:
         """Convention pin: a blob centred on pixel index (i, j) is detected at (i + 0.5, j + 0.5),
         i.e. pycolmap returns COLMAP coordinates; the features file holds hloc's (i, j)."""
         centers = [(60, 70), (150, 120), (190, 50)]
-        f = points.sift_features(blob_image(centers), SiftConf(max_keypoints=100))
+        f = points.sift_features(blob_image(centers), SiftConfig(max_keypoints=100))
         for c in centers:
             d = np.linalg.norm(f["keypoints"] - (np.array(c) + 0.5), axis=1)
             assert d.min() < 0.05, (c, d.min())
@@ -62,7 +62,7 @@ class TestSift:
         np.testing.assert_allclose(np.linalg.norm(f["descriptors"], axis=1), 1.0, rtol=1e-5)
 
         view = image_view(tmp_path, "seq-01/blobs.png", blob_image(centers))
-        h5 = extract_sift([view], tmp_path / "feats.h5", SiftConf(max_keypoints=100))
+        h5 = extract_sift([view], tmp_path / "feats.h5", SiftConfig(max_keypoints=100))
         with h5py.File(h5, "r") as fd:
             raw = fd["seq-01/blobs.png"]["keypoints"][()]
             assert fd["seq-01/blobs.png"]["descriptors"].shape[0] == 128
@@ -83,16 +83,16 @@ class TestSift:
 
             object.__setattr__(v, "load_color", counted)
         h5 = tmp_path / "f.h5"
-        extract_sift(views[:2], h5, SiftConf(max_keypoints=50))
-        extract_sift(views, h5, SiftConf(max_keypoints=50))
+        extract_sift(views[:2], h5, SiftConfig(max_keypoints=50))
+        extract_sift(views, h5, SiftConfig(max_keypoints=50))
         assert calls == ["im0.png", "im1.png", "im2.png"]
         assert hloc_io.list_h5_names(h5) == ["im0.png", "im1.png", "im2.png"]
-        extract_sift(views[:1], h5, SiftConf(max_keypoints=50), overwrite=True)
+        extract_sift(views[:1], h5, SiftConfig(max_keypoints=50), overwrite=True)
         assert hloc_io.list_h5_names(h5) == ["im0.png"]  # overwrite starts the file afresh
 
     def test_bad_image(self):
         with pytest.raises(Exception, match="uint8"):
-            points.sift_features(np.zeros((10, 10), np.float32), SiftConf())
+            points.sift_features(np.zeros((10, 10), np.float32), SiftConfig())
 
 
 class TestMatching:
@@ -112,16 +112,16 @@ class TestMatching:
         m0b, _ = mutual_nn_ratio(d0, d1b)
         assert m0b[perm[0]] == -1 and (m0b >= 0).sum() == 49
         # without the ratio test the twin is matched, and mutual-ness still holds
-        m0c, _ = mutual_nn_ratio(d0, d1b, MatchConf(ratio=1.0))
+        m0c, _ = mutual_nn_ratio(d0, d1b, MatchConfig(ratio=1.0))
         assert (m0c >= 0).sum() == 50
 
     def test_mutual_check(self):
         d0 = np.array([[1.0, 0], [0.96, 0.28]])  # both closest to d1[0]
         d1 = np.array([[0.99, 0.141], [-1.0, 0]])
         d1 /= np.linalg.norm(d1, axis=1, keepdims=True)
-        m0, _ = mutual_nn_ratio(d0, d1, MatchConf(ratio=1.0, mutual=True))
+        m0, _ = mutual_nn_ratio(d0, d1, MatchConfig(ratio=1.0, mutual=True))
         assert (m0 >= 0).sum() == 1
-        m0, _ = mutual_nn_ratio(d0, d1, MatchConf(ratio=1.0, mutual=False))
+        m0, _ = mutual_nn_ratio(d0, d1, MatchConfig(ratio=1.0, mutual=False))
         assert m0.tolist() == [0, 0]
 
     def test_match_features_file(self, tmp_path):
@@ -179,7 +179,7 @@ class TestGeometry:
         away = views[0].cam_from_world.copy()
         away = make_T(Rotation.from_rotvec([0, np.pi, 0]).as_matrix() @ away[:3, :3], away[:3, 3])
         views.append(View(name="seq-01/away.color.png", camera=CAM, cam_from_world=away, color_path=None))
-        pairs = pairs_from_poses(views, tmp_path / "pairs.txt", PairsConf(num_neighbors=2))
+        pairs = pairs_from_poses(views, tmp_path / "pairs.txt", PairsConfig(num_neighbors=2))
         assert hloc_io.read_pairs(tmp_path / "pairs.txt") == pairs
         assert all("away" not in a + b for a, b in pairs)  # faces the other way: no overlap
         idx = {v.name: i for i, v in enumerate(views)}
@@ -304,13 +304,13 @@ def _localize(scene_mapping, scene_query, out, conf, retrieval_conf=None):
 def test_redkitchen_subset(redkitchen_root, tmp_path):
     """15 mapping + 5 queries at 1024 keypoints: most queries within 5 cm / 2 deg."""
     from lipmap.datasets import load_scene
-    from localization.retrieval import RetrievalConf
+    from localization.retrieval import RetrievalConfig
 
     scene = load_scene("7scenes", redkitchen_root, "redkitchen")
     mapping = scene.mapping[:45:3]  # frames 0, 30, ..., 420
     queries = [scene.query[i] for i in (0, 9, 18, 27, 36)]  # frames 5, 95, 185, 275, 365
     built, _, rows, recall, _ = _localize(
-        mapping, queries, tmp_path, points.confs["sift-n1024-fast"], RetrievalConf(num_words=16, num_retrieved=5)
+        mapping, queries, tmp_path, points.confs["sift-n1024-fast"], RetrievalConfig(num_words=16, num_retrieved=5)
     )
     stats = points.model_stats(built["sfm"])
     assert stats["num_points3D"] > 500 and stats["mean_reproj_error"] < 2.0

@@ -9,7 +9,7 @@ from lipmap.errors import InputError
 from lipmap.poses import make_T
 from localization import hloc_io
 from localization.retrieval import (
-    RetrievalConf,
+    RetrievalConfig,
     global_descriptor,
     pairs_from_retrieval,
     pose_distance,
@@ -40,7 +40,7 @@ class TestGlobalDescriptor:
     @pytest.mark.parametrize("method", ["vlad", "bow"])
     def test_shapes_and_norm(self, tmp_path, method):
         feats, db, _ = _features(tmp_path)
-        conf = RetrievalConf(method=method, num_words=8)
+        conf = RetrievalConfig(method=method, num_words=8)
         cb = train_codebook(feats, db, conf)
         assert cb["centers"].shape == (8, 32)
         d = hloc_io.read_features(feats, db[0])["descriptors"]
@@ -52,14 +52,14 @@ class TestGlobalDescriptor:
 
     def test_codebook_seeded(self, tmp_path):
         feats, db, _ = _features(tmp_path)
-        a = train_codebook(feats, db, RetrievalConf(num_words=8, seed=3))["centers"]
-        b = train_codebook(feats, db, RetrievalConf(num_words=8, seed=3))["centers"]
+        a = train_codebook(feats, db, RetrievalConfig(num_words=8, seed=3))["centers"]
+        b = train_codebook(feats, db, RetrievalConfig(num_words=8, seed=3))["centers"]
         np.testing.assert_array_equal(a, b)
 
     def test_too_few_descriptors(self, tmp_path):
         feats, db, _ = _features(tmp_path)
         with pytest.raises(InputError, match="visual words"):
-            train_codebook(feats, db[:1], RetrievalConf(num_words=500))
+            train_codebook(feats, db[:1], RetrievalConfig(num_words=500))
 
 
 def test_top_k_order_and_ties():
@@ -72,7 +72,7 @@ def test_top_k_order_and_ties():
 @pytest.mark.parametrize("method", ["vlad", "bow"])
 def test_pairs_from_retrieval(tmp_path, method):
     feats, db, q = _features(tmp_path)
-    conf = RetrievalConf(method=method, num_words=8, num_retrieved=3)
+    conf = RetrievalConfig(method=method, num_words=8, num_retrieved=3)
     out = pairs_from_retrieval(q, db, feats, tmp_path / "pairs.txt", conf)
     pairs = hloc_io.read_pairs(out)
     ranked = hloc_io.pairs_by_query(pairs)
@@ -97,7 +97,7 @@ def test_pairs_from_retrieval(tmp_path, method):
 def test_retrieval_missing_image(tmp_path):
     feats, db, q = _features(tmp_path)
     with pytest.raises(InputError) as e:
-        pairs_from_retrieval(q + ["q/missing.png"], db, feats, tmp_path / "pairs.txt", RetrievalConf(num_words=8))
+        pairs_from_retrieval(q + ["q/missing.png"], db, feats, tmp_path / "pairs.txt", RetrievalConfig(num_words=8))
     assert "q/missing.png" in str(e.value) and str(feats) in str(e.value)
 
 
@@ -120,13 +120,13 @@ def test_retrieval_recall_counts():
 def test_redkitchen_recall(redkitchen_root, tmp_path):
     """VLAD over SIFT on real frames: the pose-nearest mapping frame is among the top 5."""
     from lipmap.datasets import load_scene
-    from localization.points import SiftConf, extract_sift
+    from localization.points import SiftConfig, extract_sift
 
     scene = load_scene("7scenes", redkitchen_root, "redkitchen")
     mapping = scene.mapping[::2]
     queries = scene.query[::10]
-    feats = extract_sift(mapping + queries, tmp_path / "feats.h5", SiftConf(max_keypoints=1024, first_octave=0))
-    conf = RetrievalConf(num_words=32, num_retrieved=5)
+    feats = extract_sift(mapping + queries, tmp_path / "feats.h5", SiftConfig(max_keypoints=1024, first_octave=0))
+    conf = RetrievalConfig(num_words=32, num_retrieved=5)
     pairs = pairs_from_retrieval([v.name for v in queries], [v.name for v in mapping], feats, tmp_path / "p.txt", conf)
     r = retrieval_recall(pairs, {v.name: v.cam_from_world for v in queries}, {v.name: v.cam_from_world for v in mapping})
     assert r["recall@5"] >= 0.8, r

@@ -33,6 +33,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+import results  # noqa: E402
 
 
 def rss_mb() -> float:
@@ -76,7 +78,6 @@ def main(argv=None):
     from lipmap import logger
     from lipmap.datasets import load_scene
     from lipmap.datasets.synthetic import SynthConfig, generate_scene
-    import localization.pipeline as pipeline
     from localization.pipeline import LocalizationConfig, localize_scene
 
     w, h = (int(v) for v in args.size.split("x"))
@@ -146,6 +147,11 @@ def main(argv=None):
         "machine": f"{platform.machine()} {os.cpu_count()} cpu, torch threads {torch.get_num_threads()}",
     }
     print(json.dumps(summary), flush=True)
+    header = ["queries localized in one process", "resident MB", "peak MB (loop)", "loop s"]
+    rows = [[r["queries"], r["rss_mb"], r["peak_rss_mb"], r["loop_s"]] for r in lines]
+    rows.append([f"slope: {summary['rss_slope_mb_per_1000_queries']} MB per 1000 queries", "", "", summary["loop_s"]])
+    results.write("perf-memory" + ("-quick" if args.quick else ""), {"samples": lines, "summary": summary,
+                                                                      "table": {"header": header, "rows": rows}})
     if tmp is not None:
         tmp.cleanup()
     return lines, summary

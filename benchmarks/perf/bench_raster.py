@@ -25,22 +25,8 @@ fresh subprocess per configuration (Linux: the peak ``VmHWM`` is reset by writin
 On a shared machine, a busy core makes torch's 2-thread OpenMP pool spin: one measurement went
 from 40 ms to 3.3 s. ``OMP_WAIT_POLICY=PASSIVE`` kept it at 61 ms under the same load.
 
-Results (commit 4e66509, 2026-11-26, 2-core CPU VM, load average ~1.2, torch 2.13.0+cpu, 2
-threads, ``python benchmarks/perf/bench_raster.py --repeat 7``; RedKitchen init planes x 2.5;
-run-to-run spread on this VM is about +-25 %):
-
-    resolution  planes  lambda  ms/iter  peak MB  (selected pixel-plane pairs)
-    320x240     2000    1500      45.8     58      82540
-    320x240     10000   1500      76.6     68      96975
-    640x480     2000    1500     160.5    196     330554
-    640x480     10000   1500     196.9    213     388324
-    320x240     2000     300      58.3     74     123214
-    320x240     10000    300     122.1    123     215344
-    640x480     2000     300     182.3    233     493505
-    640x480     10000    300     342.2    407     861635
-    320x240     2000    36.8     136.8    154     370987   (--quick --lam 36.8)
-
-No CUDA device was available for these runs.
+Results go to ``benchmarks/results/perf-raster.json`` (with command, commit, machine and date); the
+README's renderer figures are generated from there.
 """
 from __future__ import annotations
 
@@ -57,6 +43,8 @@ import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "benchmarks"))
+import results  # noqa: E402
 DATA = (REPO / ".." / "shared" / "data" / "7scenes-redkitchen-mini").resolve()
 
 
@@ -213,6 +201,7 @@ def main():
     resolutions = ["320x240"] if args.quick else ["320x240", "640x480"]
     counts = [2000] if args.quick else [2000, 10000]
     lams = [args.lam] if args.lam is not None else [1500.0, 300.0]
+    records = []
     for device in devices:
         for lam in lams:
             for res in resolutions:
@@ -223,10 +212,16 @@ def main():
                     r = subprocess.run(cmd, capture_output=True, text=True)
                     line = [l for l in r.stdout.splitlines() if l.startswith("{")]
                     if r.returncode != 0 or not line:
-                        print(json.dumps({"resolution": res, "planes": K, "device": device, "lambda": lam,
-                                          "error": r.stderr.strip().splitlines()[-1:] }), flush=True)
+                        rec = {"resolution": res, "planes": K, "device": device, "lambda": lam,
+                               "error": r.stderr.strip().splitlines()[-1:]}
                     else:
-                        print(line[-1], flush=True)
+                        rec = json.loads(line[-1])
+                    print(json.dumps(rec), flush=True)
+                    records.append(rec)
+    header = ["resolution", "planes", "lambda", "device", "ms per forward+backward (median)", "peak MB", "pixel-plane pairs"]
+    rows = [[r["resolution"], r["planes"], f"{r['lambda']:g}", r["device"] + (f", {r['threads']} threads" if r.get("threads") else ""),
+             r.get("ms_per_iter", "error"), r.get("peak_mb", ""), r.get("pairs", "")] for r in records]
+    results.write("perf-raster" + ("-quick" if args.quick else ""), {"records": records, "table": {"header": header, "rows": rows}})
 
 
 if __name__ == "__main__":

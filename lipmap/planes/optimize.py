@@ -78,53 +78,33 @@ class PlaneOptConfig:
 
 
 def _fast() -> PlaneOptConfig:
-    # Tests and the demo (CPU): ~320 px wide images, 8 epochs, 2 cm TSDF voxels. Measured on the
-    # synthetic room-s3 (30 mapping views at 320x240; median |rendered - true depth| on the 20
-    # query views) while tuning, all else equal:
-    # - lr 1e-2 (reference 1e-3): Adam moves a parameter by ~lr per step, and 240 steps at
-    #   1e-3..3e-3 cannot grow the 2-3 cm init radii to wall size (lr 3e-3 -> 1e-2 at 160 px:
-    #   8.6 cm -> 2.5 cm);
-    # - lambda clipped to >= 300: the reference's soft start (lambda 37..300, splats reaching
-    #   3-27 cm beyond each rectangle) costs ~20 s per epoch on CPU and was worse here
-    #   (2.5 cm -> 1.6 cm at 160 px); 320 px instead of 160 px: 1.6 -> 0.9 cm;
-    # - no splitting: within 8 epochs each split threshold tried (0.2, 0.6, 1.5 on our
-    #   mean-over-pixels losses) made it worse (4.5, 2.2, 1.1 cm vs 0.9 cm without).
+    # Tests and the demo on a CPU; each departure from the reference is why it is fast (docs/tuning.md).
     return PlaneOptConfig(
         name="fast",
         epochs=8,
         downscale=0,
-        target_width=320,
-        lr_center=1e-2,
+        target_width=320,  # ~320 px: at 160 px the rendered depth was twice as far off
+        lr_center=1e-2,  # 240 steps at the reference 1e-3 cannot grow 2-3 cm init radii to wall size
         lr_quat=1e-2,
         lr_radii=1e-2,
-        lambda_min=300.0,
-        split=False,
+        lambda_min=300.0,  # the reference's soft start costs ~20 s per epoch on a CPU and did not help here
+        split=False,  # within 8 epochs every split threshold tried made the depth worse
         init=PlaneInitConfig(n_planes=2000, voxel_size=0.02, depth_downscale=1),
     )
 
 
 def _fast_lines() -> PlaneOptConfig:
-    # The joint line-plane optimization on CPU (mapping preset "fast"). Measured on the synthetic
-    # room-s0 (line F@5cm against the mesh; line weight 0.3 unless said) starting from "fast":
-    # - lr 1e-2 on the quaternion random-walks the in-plane rotation (median 8.5 deg off the room's
-    #   axes after optimization), so edges cannot settle on lines: 2e-3, with every lr annealed to
-    #   10 % (lr_final_frac), 24 epochs: F 0.057 -> 0.156; 40 epochs: 0.193;
-    # - 6000 initial planes instead of 2000 (more edges to align): F 0.242 -> 0.284 (weight 1, 24 ep.);
-    # - splitting (threshold on the mean |d loss / d radius|): 1.0 adds planes where lines pull,
-    #   0.284 -> 0.298; 0.6 at 72 epochs 0.325 -> 0.326 and R@50mm 279 -> 301; 0.2 shatters the
-    #   planes (median depth error 1.5 mm -> 8.8 cm);
-    # - 24 -> 48 -> 72 epochs (split 1.0): F 0.271 -> 0.314 -> 0.325, depth error stays 1-2 mm.
-    # On the RedKitchen mini (50 views, 640x480 trained at 320x240) the same run takes ~4-7 min.
+    # The joint line-plane optimization on a CPU (mapping preset "fast"); see docs/tuning.md.
     fast = _fast()
     return replace(
         fast,
         name="fast-lines",
-        epochs=72,
-        lr_quat=2e-3,
-        lr_final_frac=0.1,
+        epochs=72,  # line F kept rising to 72 epochs while the depth error stayed 1-2 mm
+        lr_quat=2e-3,  # 1e-2 random-walks the in-plane rotation, so edges cannot settle on lines
+        lr_final_frac=0.1,  # annealed: edges settle to the pixel level at the end
         split=True,
-        split_grad_threshold=0.6,
-        init=replace(fast.init, n_planes=6000),
+        split_grad_threshold=0.6,  # adds planes where lines pull; 0.2 shatters the planes
+        init=replace(fast.init, n_planes=6000),  # more edges to align with the detected lines
     )
 
 

@@ -1,0 +1,77 @@
+"""Regenerate the README's tables from ``benchmarks/results/*.json`` (the figures' one source).
+
+    python benchmarks/readme_tables.py           # rewrite README.md in place
+    python benchmarks/readme_tables.py --check   # exit 1 if README.md is out of date (the tests run this)
+
+A generated block in the README is
+
+    <!-- results: NAME1 NAME2 ... -->
+    ...table rows of NAME1, then NAME2 (same header), then one provenance line per file...
+    <!-- /results -->
+
+where each NAME is a file ``benchmarks/results/NAME.json`` written by a benchmark script, holding
+``table: {header, rows}`` and ``provenance: {command, commit, date, machine}``.
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import results  # noqa: E402
+
+README = results.REPO / "README.md"
+BLOCK = re.compile(r"(<!-- results: ([^>]*?) -->\n)(.*?)(<!-- /results -->)", re.S)
+
+
+def _row(cells) -> str:
+    return "| " + " | ".join(str(c) for c in cells) + " |"
+
+
+def _machine(m: dict) -> str:
+    gpu = f", {m['gpu']}" if m.get("gpu") else ""
+    return f"{m.get('cpu', '?')}, {m.get('cores', '?')} cores{gpu}"
+
+
+def render_block(names: list[str]) -> str:
+    """The markdown of one generated block: the tables of ``names`` under one header, then provenance."""
+    header, rows, notes = None, [], []
+    for name in names:
+        r = results.read(name)
+        t, p = r["table"], r["provenance"]
+        if header is None:
+            header = t["header"]
+        elif t["header"] != header:
+            raise ValueError(f"{name}: its table header {t['header']} differs from {header}")
+        rows += t["rows"]
+        dirty = " (uncommitted changes)" if p.get("dirty") else ""
+        notes.append(f"`{name}`: {p['date']}, commit {p['commit']}{dirty}, {_machine(p['machine'])}: `{p['command']}`")
+    lines = [_row(header), _row(["---"] * len(header)), *(_row(r) for r in rows), ""]
+    lines += ["<sub>" + "<br>".join(notes) + "</sub>", ""]
+    return "\n".join(lines)
+
+
+def render(text: str) -> str:
+    return BLOCK.sub(lambda m: m.group(1) + render_block(m.group(2).split()) + m.group(4), text)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--check", action="store_true", help="only check that README.md is up to date")
+    args = ap.parse_args(argv)
+    text = README.read_text()
+    new = render(text)
+    if args.check:
+        if new != text:
+            print("README.md tables differ from benchmarks/results/: run python benchmarks/readme_tables.py")
+            return 1
+        return 0
+    README.write_text(new)
+    print(f"{README}: {len(BLOCK.findall(text))} generated blocks")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
