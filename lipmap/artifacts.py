@@ -9,7 +9,7 @@ that may hold several variants side by side (``lipmap-loc eval`` with ``--method
 
 Where the stamp lives: HDF5 files carry it in the root attribute ``lipmap_stamp`` (written in the same
 atomic write as the data, see :meth:`Stamp.h5_attrs`); other files and folders in a sidecar
-``<name>.stamp.json``.
+``<name>.stamp.json`` (a folder: ``<folder>/lipmap-stamp.json``).
 """
 from __future__ import annotations
 
@@ -104,7 +104,8 @@ class Stamp:
 
 
 def _sidecar(path: Path) -> Path:
-    return path.parent / (path.name + ".stamp.json")
+    # a folder (a COLMAP model) carries its stamp inside, so that it moves and globs as one thing
+    return path / "lipmap-stamp.json" if path.is_dir() else path.parent / (path.name + ".stamp.json")
 
 
 def _is_h5(path: Path) -> bool:
@@ -146,7 +147,8 @@ def remove(path) -> None:
     path = Path(path)
     if path.is_dir():
         shutil.rmtree(path)
-    elif path.exists():
+        return
+    if path.exists():
         path.unlink()
     side = _sidecar(path)
     if side.exists():

@@ -102,7 +102,7 @@ def corrupt_depth(depth: np.ndarray, rng: np.random.Generator, warp_sigma: float
 
 def get_config(preset="small") -> SynthConfig:
     """A :class:`SynthConfig` from a preset name, a dict of overrides or itself (:func:`lipmap.presets.resolve`)."""
-    return resolve(preset, SYNTH_PRESETS, "synthetic scene", default="small")
+    return resolve(preset, SYNTH_PRESETS, "synthetic", default="small")
 
 
 # ---- trajectories -----------------------------------------------------------------------------------------
