@@ -110,6 +110,8 @@ def cmd_eval(args):
 
 
 def cmd_map(args):
+    import numpy as np
+
     from lipmap.datasets import load_scene
     from lipmap.mapping.pipeline import map_scene
 
@@ -135,6 +137,14 @@ def cmd_map(args):
     if "n_on_plane_lines" in lm.metadata:
         kinds = f" ({lm.metadata['n_edge_lines']} plane edges + {lm.metadata['n_on_plane_lines']} on-plane lines)"
     print(f"{len(lm)} lines{kinds} -> {path}")
+    if len(lm):
+        print(f"supports: median {np.median(lm.supports[:, 0]):.0f} images, {np.median(lm.supports[:, 1]):.0f} 2D lines per line")
+    ps = lm.metadata.get("plane_stats")
+    if ps:
+        print(f"planes: {ps['n_planes']}, area-weighted median {ps.get('area_weighted_median_area_m2', float('nan')):.3f} m2 "
+              f"(longer side {ps.get('area_weighted_median_side_m', float('nan')):.2f} m); depth vs sensor: median "
+              f"{ps.get('depth_error_median_cm', float('nan')):.1f} cm, {100 * ps.get('depth_error_over_5cm', float('nan')):.0f} % "
+              f"of pixels > 5 cm")
     print(f"mapping time: {t.get('total_s', float('nan')):.1f} s ({json.dumps({k: round(v, 1) for k, v in t.items()})})")
 
 

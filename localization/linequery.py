@@ -153,6 +153,29 @@ class LineQuery:
         }
 
 
+def correct_line_matches(lines2d: np.ndarray, lines3d: np.ndarray, cam_from_world_gt: np.ndarray, camera,
+                         max_dist_px: float = 2.0, max_angle_deg: float = 1.0) -> np.ndarray:
+    """Which 2D-3D line matches are right under the ground-truth pose.
+
+    A match is correct when the 3D line, projected with ``cam_from_world_gt``, lies within ``max_dist_px``
+    (both detection endpoints to the projected infinite line) and ``max_angle_deg`` of the detection.
+
+    Args:
+        lines2d: :math:`(M, 2, 2)` detections (COLMAP pixels); lines3d: :math:`(M, 2, 3)` their matched map lines.
+
+    Returns:
+        :math:`(M,)` bool.
+    """
+    lines2d = np.asarray(lines2d, dtype=float).reshape(-1, 2, 2)
+    if len(lines2d) == 0 or cam_from_world_gt is None:
+        return np.zeros(len(lines2d), bool)
+    proj, valid = geo.project_segments(np.asarray(lines3d, dtype=float).reshape(-1, 2, 3), cam_from_world_gt, camera)
+    with np.errstate(invalid="ignore"):
+        ang = geo.angle_distance(lines2d, proj)
+        dist = geo.perpendicular_distance(lines2d, proj, "max")
+    return valid & (ang <= np.radians(max_angle_deg)) & (dist <= max_dist_px)
+
+
 def _empty() -> dict:
     return {
         "query_idx": np.zeros(0, np.int64),

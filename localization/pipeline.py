@@ -32,7 +32,7 @@ from lipmap.imageio import write_text_atomic
 
 from . import evaluate as ev
 from .estimate import PointLinePoseConfig, PointPoseConfig, estimate_pose_point_line, estimate_pose_points, subsample_matches
-from .linequery import LineQuery, LineQueryConfig
+from .linequery import LineQuery, LineQueryConfig, correct_line_matches
 
 
 # hloc-format results of each method (name qw qx qy qz tx ty tz, cam_from_world)
@@ -126,8 +126,13 @@ class HlocPoints:
 # ----------------------------------------------------------------------------------------------
 # per-query localization
 # ----------------------------------------------------------------------------------------------
-def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: LocalizationConfig) -> dict:
-    """Point-only and point+line poses of one query. Never raises: failures are recorded."""
+def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: LocalizationConfig, cam_from_world_gt=None) -> dict:
+    """Point-only and point+line poses of one query. Never raises: failures are recorded.
+
+    With the ground-truth pose, the line matches of the last refinement (and its PnPL line inliers) are
+    checked against it (:func:`~localization.linequery.correct_line_matches`) - after the timing, so the
+    check costs the method nothing.
+    """
     rec = {"name": name, "point": {"success": False}, "point+line": {"success": False}}
     t0 = time.perf_counter()
     try:
@@ -147,19 +152,25 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
         return rec
     t1 = time.perf_counter()
     T = est["cam_from_world"]
-    n_lm, n_li, used_lines = 0, 0, False
+    m, inliers, used_lines = None, None, False
     plconf = replace(conf.point_line_pose, seed=conf.seed)
     for _ in range(max(1, conf.line_iters)):
-        m = lq.match(lines2d, T, camera, conf.line_query)
-        n_lm = len(m["line_idx"])
-        r = estimate_pose_point_line(pm.p2d, pm.p3d, m["lines2d"], m["lines3d"], camera, initial=T, conf=plconf)
+        tried = lq.match(lines2d, T, camera, conf.line_query)
+        r = estimate_pose_point_line(pm.p2d, pm.p3d, tried["lines2d"], tried["lines3d"], camera, initial=T, conf=plconf)
         if not r["success"]:
+            m = m or tried  # the matches the pose rests on: the last successful refinement's
             break
-        T, n_li, used_lines = r["cam_from_world"], r["n_line_inliers"], True
+        T, m, inliers, used_lines = r["cam_from_world"], tried, r["line_inliers"], True
     t_line = (time.perf_counter() - t1) * 1000
-    rec["point+line"] = {"success": True, "used_lines": used_lines, "n_line_matches": n_lm, "n_line_inliers": n_li,
+    n_lm = len(m["line_idx"])
+    rec["point+line"] = {"success": True, "used_lines": used_lines, "n_line_matches": n_lm,
+                         "n_line_inliers": int(inliers.sum()) if used_lines else 0,
                          "n_query_lines": int(len(lines2d)), "ms": t_point + t_line, "line_stage_ms": t_line,
                          "cam_from_world": _T(T)}
+    if cam_from_world_gt is not None and m is not None:
+        ok = correct_line_matches(m["lines2d"], m["lines3d"], cam_from_world_gt, camera)
+        rec["point+line"]["n_line_matches_correct"] = int(ok.sum())
+        rec["point+line"]["n_line_inliers_correct"] = int((ok & inliers).sum()) if used_lines else 0
     return rec
 
 
@@ -312,7 +323,7 @@ def _localize_all(scene, points, qlines_h5: Path, lq: LineQuery, conf: Localizat
                 lines2d = np.zeros((0, 4))
                 logger.warning("No lines for query %s: %s", v.name, e)
             try:
-                rec = localize_query(v.name, v.camera, points, lines2d, lq, conf)
+                rec = localize_query(v.name, v.camera, points, lines2d, lq, conf, v.cam_from_world)
             except Exception as e:  # noqa: BLE001
                 logger.warning("Query %s failed: %s", v.name, e)
                 rec = {"name": v.name, "point": {"success": False}, "point+line": {"success": False}, "error": repr(e)}
@@ -321,6 +332,22 @@ def _localize_all(scene, points, qlines_h5: Path, lq: LineQuery, conf: Localizat
             checkpoint("query")
     finally:
         journal.close()
+
+
+def line_match_stats(recs) -> dict:
+    """Per-scene line-correspondence figures, checked with the ground-truth pose: medians of matches and
+    correct matches per query, and the precision of the matches and of the PnPL line inliers."""
+    pl = [r["point+line"] for r in recs if "n_line_matches_correct" in r.get("point+line", {})]
+    if not pl:
+        return {}
+    tot = {k: sum(p.get(k, 0) for p in pl) for k in ("n_line_matches", "n_line_matches_correct", "n_line_inliers",
+                                                       "n_line_inliers_correct")}
+    return {
+        "median_line_matches": float(np.median([p["n_line_matches"] for p in pl])),
+        "median_line_matches_correct": float(np.median([p["n_line_matches_correct"] for p in pl])),
+        "line_match_precision": round(tot["n_line_matches_correct"] / tot["n_line_matches"], 4) if tot["n_line_matches"] else None,
+        "line_inlier_precision": round(tot["n_line_inliers_correct"] / tot["n_line_inliers"], 4) if tot["n_line_inliers"] else None,
+    }
 
 
 def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConfig, linemap, timings, gt=None,
@@ -342,6 +369,7 @@ def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConf
     line_ms = [r["point+line"]["line_stage_ms"] for r in recs.values() if "line_stage_ms" in r["point+line"]]
     summary["point+line"]["median_ms_line_stage"] = float(np.median(line_ms)) if line_ms else None
     summary["point+line"]["median_line_inliers"] = float(np.median([r["point+line"].get("n_line_inliers", 0) for r in recs.values()]))
+    summary["point+line"].update(line_match_stats(recs.values()))
     out = {
         "scene": scene.name,
         "dataset": scene.dataset,

@@ -155,7 +155,8 @@ def plane_or_input_depth(plane_z: np.ndarray, input_z: Optional[np.ndarray], tol
     return np.where(use_input, input_z, plane_z)
 
 
-def best_edges(corners: np.ndarray, plane_idx: np.ndarray, lines2d: np.ndarray, cam_from_world, camera):
+def best_edges(corners: np.ndarray, plane_idx: np.ndarray, lines2d: np.ndarray, cam_from_world, camera,
+               dist_reduce: str = "max"):
     """For each (hit plane, detected line) pair, the plane edge that explains the line.
 
     Of the four projected edges keep the two closest in angle to the detected line, then pick the one
@@ -166,8 +167,8 @@ def best_edges(corners: np.ndarray, plane_idx: np.ndarray, lines2d: np.ndarray, 
 
     Returns:
         **edge_idx** :math:`(P,)` in 0..3, **angle** :math:`(P,)` rad and **dist** :math:`(P,)` px
-        (the paper's d_ang and d_dist = max endpoint-to-line distance) of the chosen edge's projection,
-        and the projected edges :math:`(P, 2, 2)`.
+        (the paper's d_ang and d_dist: the ``dist_reduce`` - "max", or "mean" as the reference code - of the
+        endpoint-to-line distances) of the chosen edge's projection, and the projected edges :math:`(P, 2, 2)`.
     """
     P = len(plane_idx)
     if P == 0:
@@ -190,13 +191,14 @@ def best_edges(corners: np.ndarray, plane_idx: np.ndarray, lines2d: np.ndarray, 
     chosen = proj[r, edge]
     with np.errstate(invalid="ignore"):
         a = geo.angle_distance(chosen, det[:, 0])
-        dmax = geo.perpendicular_distance(chosen, det[:, 0], reduce="max")
+        dmax = geo.perpendicular_distance(chosen, det[:, 0], reduce=dist_reduce)
     a = np.where(np.isfinite(a), a, np.inf)
     dmax = np.where(np.isfinite(dmax), dmax, np.inf)
     return edge, a, dmax, chosen
 
 
-def assign_lines(raycaster: PlaneRaycaster, corners, lines2d, cam_from_world, camera, pixels=None, line_idx=None):
+def assign_lines(raycaster: PlaneRaycaster, corners, lines2d, cam_from_world, camera, pixels=None, line_idx=None,
+                 dist_reduce: str = "max"):
     """Assign detected lines to plane edges through the pixels of their 1-pixel regions.
 
     Args:
@@ -215,7 +217,8 @@ def assign_lines(raycaster: PlaneRaycaster, corners, lines2d, cam_from_world, ca
     plane, dist_ray = raycaster.first_hit(o, d)
     hit = plane >= 0
     pixels, line_idx, plane, dist_ray = pixels[hit], line_idx[hit], plane[hit], dist_ray[hit]
-    edge, ang, dmax, _ = best_edges(corners, plane, np.asarray(lines2d).reshape(-1, 4)[line_idx], cam_from_world, camera)
+    edge, ang, dmax, _ = best_edges(corners, plane, np.asarray(lines2d).reshape(-1, 4)[line_idx], cam_from_world, camera,
+                                    dist_reduce)
     return {"pixel": pixels, "line": line_idx, "plane": plane, "edge": edge, "angle": ang, "dist": dmax, "depth": dist_ray}
 
 

@@ -26,6 +26,7 @@ from .assign import PlaneRaycaster, assign_lines, corner_edges
 class ExtractConfig:
     max_dist: float = 1.0  # px, paper tau_d for extraction
     max_angle: float = 0.01  # rad, paper tau_alpha
+    dist_reduce: str = "max"  # of the two endpoint distances: "max" (the paper's d_orth), "mean" (reference code)
     merge: str = "global"  # none | local | global
     dbscan_eps: float = 0.01  # m, paper tau_dbscan
     track_max_angle: float = 0.01
@@ -58,7 +59,7 @@ def extract_observations(corners, views, lines_by_view: dict, conf: ExtractConfi
         lines = np.asarray(lines_by_view.get(v.name, np.zeros((0, 4))), dtype=float)
         if len(lines) == 0:
             continue
-        a = assign_lines(caster, corners, lines, v.cam_from_world, v.camera)
+        a = assign_lines(caster, corners, lines, v.cam_from_world, v.camera, dist_reduce=conf.dist_reduce)
         ok = (a["angle"] <= conf.max_angle) & (a["dist"] <= conf.max_dist)
         if ok.any():
             rows.append(np.stack([np.full(ok.sum(), vi), a["line"][ok], a["plane"][ok], a["edge"][ok]], 1))
@@ -239,21 +240,32 @@ def depth_residuals(lines: np.ndarray, tracks: np.ndarray, views, depth_by_view:
 
 
 def build_tracks(lines: np.ndarray, views, lines_by_view: dict, conf: ExtractConfig, depth_by_view=None,
-                 progress: bool = True):
+                 progress: bool = True, caster=None):
     """The paper's track builder: (line, view, detected-line) triples where the projection matches.
+
+    A line is looked for in every view that sees it - in front of the camera, inside the image and not
+    hidden: by the planes when ``caster`` (the planes' :class:`~lipmap.mapping.assign.PlaneRaycaster`) is
+    given, else by the view's depth map - and tracked by every detected segment its projection matches by
+    the paper's angle, distance and overlap thresholds (``conf.track_*``).
 
     Returns:
         int array :math:`(T, 3)` of (line id, view index, 2D line index).
     """
+    from .assign import visible_lines
+
     out = []
-    samples = geo.sample_segments(lines, 5) if len(lines) else np.zeros((0, 5, 3))
+    lines = np.asarray(lines, dtype=float).reshape(-1, 2, 3)
+    samples = geo.sample_segments(lines, 5) if len(lines) and caster is None else None
     for vi, v in enumerate(tqdm(views, desc="build tracks", disable=not progress, leave=False)):
         det = np.asarray(lines_by_view.get(v.name, np.zeros((0, 4))), dtype=float)
         if len(det) == 0 or len(lines) == 0:
             continue
-        depth = None if depth_by_view is None else depth_by_view.get(v.name)
-        vis = visible_mask(samples.reshape(-1, 3), v, depth, conf.occlusion_tol).reshape(len(lines), -1)
-        cand = np.flatnonzero(vis.sum(1) >= 3)
+        if caster is not None:
+            cand = visible_lines(lines, v.cam_from_world, v.camera, caster, conf.occlusion_tol)
+        else:
+            depth = None if depth_by_view is None else depth_by_view.get(v.name)
+            vis = visible_mask(samples.reshape(-1, 3), v, depth, conf.occlusion_tol).reshape(len(lines), -1)
+            cand = np.flatnonzero(vis.sum(1) >= 3)
         if len(cand) == 0:
             continue
         proj, valid = geo.project_segments(lines[cand], v.cam_from_world, v.camera)
@@ -264,3 +276,24 @@ def build_tracks(lines: np.ndarray, views, lines_by_view: dict, conf: ExtractCon
     if not out:
         return np.zeros((0, 3), dtype=np.int64)
     return np.unique(np.concatenate(out).astype(np.int64), axis=0)
+
+
+def add_tracks(linemap, views, lines_by_view: dict, conf: ExtractConfig, caster=None, depth_by_view=None,
+               which: np.ndarray | None = None):
+    """``linemap`` with the track builder's observations (:func:`build_tracks`) added to the tracks of the lines
+    ``which`` (default: all); the evidence already in the tracks is kept; supports are recounted."""
+    from ..linemap import LineMap
+
+    idx = np.arange(len(linemap)) if which is None else np.asarray(which, dtype=np.int64)
+    if len(idx) == 0:
+        return linemap
+    rows = build_tracks(linemap.lines[idx], views, lines_by_view, conf, depth_by_view, caster=caster)
+    tracks = [list(t) for t in linemap.tracks]
+    have = [{(o[0], int(o[1])) for o in t} for t in tracks]
+    for l, vi, di in rows:
+        line, name = int(idx[l]), views[vi].name
+        if (name, int(di)) not in have[line]:
+            have[line].add((name, int(di)))
+            tracks[line].append((name, int(di), lines_by_view[name][di]))
+    tracks = [sorted(t, key=lambda o: (o[0], int(o[1]))) for t in tracks]
+    return LineMap(linemap.lines, tracks, planes=linemap.planes, metadata=dict(linemap.metadata))

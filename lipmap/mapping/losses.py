@@ -18,11 +18,14 @@ def assigned_edges(corners: torch.Tensor, plane_idx, edge_idx) -> torch.Tensor:
     return torch.gather(c, 1, ev[..., None].expand(-1, -1, 3))
 
 
-def line_loss_terms(edges3d: torch.Tensor, det: torch.Tensor, cam_from_world: torch.Tensor, camera):
+def line_loss_terms(edges3d: torch.Tensor, det: torch.Tensor, cam_from_world: torch.Tensor, camera,
+                    euc_inside_only: bool = False):
     """Per-assignment endpoint and orthogonal distances.
 
     Args:
         edges3d: :math:`(P, 2, 3)` world edges; det: :math:`(P, 4)` detected segments (px).
+        euc_inside_only: D_euc counts only the projected endpoints inside the image (reference code): an edge
+            that leaves the image cannot be seen to end where the detection ends.
 
     Returns:
         **euc** :math:`(P,)` = min over endpoint orderings of the summed endpoint distances (paper D_euc),
@@ -32,8 +35,12 @@ def line_loss_terms(edges3d: torch.Tensor, det: torch.Tensor, cam_from_world: to
     proj, valid = geo.project_segments(edges3d, cam_from_world, camera)
     d = det.reshape(-1, 2, 2)
     proj = torch.where(valid[:, None, None], proj, d)  # invalid -> zero loss, masked below anyway
-    direct = (proj[:, 0] - d[:, 0]).norm(dim=-1) + (proj[:, 1] - d[:, 1]).norm(dim=-1)
-    swapped = (proj[:, 0] - d[:, 1]).norm(dim=-1) + (proj[:, 1] - d[:, 0]).norm(dim=-1)
+    w = torch.ones(proj.shape[:2], dtype=proj.dtype, device=proj.device)
+    if euc_inside_only:
+        x, y = proj[..., 0].detach(), proj[..., 1].detach()
+        w = ((x >= 0) & (x <= camera.width) & (y >= 0) & (y <= camera.height)).to(proj.dtype)
+    direct = w[:, 0] * (proj[:, 0] - d[:, 0]).norm(dim=-1) + w[:, 1] * (proj[:, 1] - d[:, 1]).norm(dim=-1)
+    swapped = w[:, 0] * (proj[:, 0] - d[:, 1]).norm(dim=-1) + w[:, 1] * (proj[:, 1] - d[:, 0]).norm(dim=-1)
     euc = torch.minimum(direct, swapped)
     ort = geo.perpendicular_distance(proj, d, reduce=None).sum(-1)
     return euc, ort, valid
@@ -69,7 +76,8 @@ def robust_px(d: torch.Tensor, scale: float) -> torch.Tensor:
 
 
 def line_loss(corners, plane_idx, edge_idx, det, line_idx, cam_from_world, camera, use_group: bool = False,
-              group_weight: float = 1.0, endpoint_weight: float = 0.5, robust_scale: float = 0.0):
+              group_weight: float = 1.0, endpoint_weight: float = 0.5, robust_scale: float = 0.0,
+              euc_inside_only: bool = False):
     """Mean over assignments of ``endpoint_weight`` * D_euc + max endpoint-to-line distance (0.5: the
     reference code's form), plus the optional group loss (metres, weighted by ``group_weight``).
 
@@ -86,7 +94,7 @@ def line_loss(corners, plane_idx, edge_idx, det, line_idx, cam_from_world, camer
     edges = assigned_edges(corners, plane_idx, edge_idx)
     T = torch.as_tensor(cam_from_world, dtype=corners.dtype, device=corners.device)
     det = torch.as_tensor(det, dtype=corners.dtype, device=corners.device)
-    euc, _, valid = line_loss_terms(edges, det, T, camera)
+    euc, _, valid = line_loss_terms(edges, det, T, camera, euc_inside_only)
     proj, _ = geo.project_segments(edges, T, camera)
     proj = torch.where(valid[:, None, None], proj, det.reshape(-1, 2, 2))
     ort_max = geo.perpendicular_distance(proj, det.reshape(-1, 2, 2), reduce="max")

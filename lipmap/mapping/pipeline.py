@@ -20,7 +20,7 @@ from .. import logger
 from ..artifacts import Stamp, reuse, scene_key, variant_dir
 from ..errors import InputError
 from ..presets import resolve
-from .extract import ExtractConfig, build_tracks, depth_residuals, extract_observations, merge_edges
+from .extract import ExtractConfig, add_tracks, depth_residuals, extract_observations, merge_edges
 
 
 @dataclass
@@ -36,6 +36,8 @@ class MappingConfig:
     group_loss: bool = False  # the paper's group loss; off in the reference code, ~1.6x the time for little gain
     endpoint_weight: float = 0.0  # D_euc weight (reference 0.5): it drags edges to the ends of short fragments
     robust_scale: float = 2.0  # px (full resolution), 0 = paper: an edge far from its line is usually another surface's
+    max_assign_frac: float = 0.1  # skip assignments whose edge is > this x image size away (0: reference, none)
+    euc_inside_only: bool = False  # D_euc only over endpoints inside the image (reference; moot without D_euc)
     on_plane_lines: bool = True  # lift the detections no plane edge explains onto the planes (ours, not the paper's)
     plane_depth_tol: float = 0.03  # m: on-plane lines take the input depth where the planes are farther from it (clutter)
     # 2 px / 0.02 rad: "fast" trains at half resolution, where the paper's 1 px is half a training pixel
@@ -50,8 +52,12 @@ confs = {
     # tests, notebooks and demos on small scenes: 8 epochs of the plain "fast" plane preset
     "quick": MappingConfig(preset="quick", planes="fast"),
     # the paper and its reference code
+    # the reference code where the paper's text is silent or differs: the line loss as coded (0.5 * D_euc +
+    # max D_ort, group loss off) rather than the text's sum with the group loss; extraction on the mean of
+    # the endpoint distances; no assignment distance filter
     "paper": MappingConfig(preset="paper", planes="paper", line_weight=0.1, endpoint_weight=0.5, robust_scale=0.0,
-                           on_plane_lines=False, extract=ExtractConfig()),
+                           max_assign_frac=0.0, euc_inside_only=True, on_plane_lines=False,
+                           extract=ExtractConfig(dist_reduce="mean")),
 }
 
 METHODS = ("lipmap", "lift")
@@ -115,7 +121,8 @@ def line_supervision(lines_by_view: dict, conf: MappingConfig):
 
     return LineSupervision(lines_by_view, weight=conf.line_weight, pixels_per_line=conf.pixels_per_line,
                            use_group=conf.group_loss, seed=conf.seed, endpoint_weight=conf.endpoint_weight,
-                           robust_scale=conf.robust_scale)
+                           robust_scale=conf.robust_scale, max_assign_frac=conf.max_assign_frac,
+                           euc_inside_only=conf.euc_inside_only)
 
 
 def fit_planes_with_lines(scene, lines_by_view: dict, out_dir: Path, conf: MappingConfig, lines_source=None,
@@ -133,20 +140,24 @@ def fit_planes_with_lines(scene, lines_by_view: dict, out_dir: Path, conf: Mappi
 
 
 def lipmap_linemap(scene, planes, lines_by_view: dict, conf: MappingConfig, depth_by_view=None):
-    """Extraction, merging and tracks from optimized planes -> LineMap (with planes and edge_line)."""
+    """Extraction, merging and tracks from optimized planes -> LineMap (with planes and edge_line).
+
+    Every line's track holds the detections that produced it (extraction votes, or the lifted detection)
+    and those the track builder matches in every mapping view that sees it past the planes
+    (:func:`~lipmap.mapping.extract.add_tracks`).
+    """
     from ..linemap import LineMap
+    from .assign import PlaneRaycaster
 
     planes = planes.detach()
     corners = planes.corners().cpu().numpy().astype(np.float64)
+    caster = PlaneRaycaster(corners)
     obs = extract_observations(corners, scene.mapping, lines_by_view, conf.extract)
     lines, obs_line, edge_line = merge_edges(corners, obs, conf.extract)
-    tracks_arr = build_tracks(lines, scene.mapping, lines_by_view, conf.extract, depth_by_view)
-    # evidence from extraction counts too (the pixel votes that produced the line)
-    ext = np.stack([obs_line, obs["view"], obs["line"]], 1)
-    ext = ext[ext[:, 0] >= 0]
-    tracks_arr = np.unique(np.concatenate([tracks_arr, ext]).astype(np.int64), axis=0) if len(ext) else tracks_arr
+    # the evidence of extraction: the detections whose pixels voted for the line
+    ext = np.unique(np.stack([obs_line, obs["view"], obs["line"]], 1), axis=0)
     tracks = [[] for _ in range(len(lines))]
-    for l, vi, di in tracks_arr:
+    for l, vi, di in ext[ext[:, 0] >= 0]:
         v = scene.mapping[vi]
         tracks[l].append((v.name, int(di), lines_by_view[v.name][di]))
     p = planes.numpy()
@@ -154,17 +165,28 @@ def lipmap_linemap(scene, planes, lines_by_view: dict, conf: MappingConfig, dept
                   "edge_line": edge_line}
     meta = {"method": "lipmap", "config": json.loads(json.dumps(asdict(conf), default=str)),
             "n_observations": int(len(obs["plane"])), "n_planes": int(len(planes))}
-    lm = LineMap(lines, tracks, planes=plane_dict, metadata=meta)
-    tol = conf.extract.max_depth_residual
-    if tol > 0 and depth_by_view and len(lm):
-        res = depth_residuals(lines, tracks_arr, scene.mapping, depth_by_view)
-        keep = ~(res > tol)  # NaN (no depth evidence) keeps the line
-        logger.info("depth check: %d of %d lines within %.0f mm of the sensor depth", keep.sum(), len(keep), tol * 1e3)
-        lm = lm.subset(keep)
-        lm.metadata["n_depth_rejected"] = int((~keep).sum())
-    lm.metadata["n_edge_lines"] = len(lm)
+    lm = add_tracks(LineMap(lines, tracks, planes=plane_dict, metadata=meta), scene.mapping, lines_by_view,
+                    conf.extract, caster)
+    lm = _depth_check(lm, scene, conf, depth_by_view)
+    lm.metadata["n_edge_lines"] = n_edges = len(lm)
     if conf.on_plane_lines:
         lm = _add_on_plane_lines(lm, scene, corners, lines_by_view, conf, depth_by_view)
+        lm = add_tracks(lm, scene.mapping, lines_by_view, conf.extract, caster, which=np.arange(n_edges, len(lm)))
+    return lm
+
+
+def _depth_check(lm, scene, conf: MappingConfig, depth_by_view):
+    """Drop lines whose tracked views' sensor depth disagrees (``ExtractConfig.max_depth_residual``; 0: off)."""
+    tol = conf.extract.max_depth_residual
+    if not (tol > 0 and depth_by_view and len(lm)):
+        return lm
+    index = {v.name: i for i, v in enumerate(scene.mapping)}
+    rows = np.array([(l, index[o.image_name], o.line2d_index) for l, t in enumerate(lm.tracks) for o in t], dtype=np.int64)
+    res = depth_residuals(lm.lines, rows.reshape(-1, 3), scene.mapping, depth_by_view)
+    keep = ~(res > tol)  # NaN (no depth evidence) keeps the line
+    logger.info("depth check: %d of %d lines within %.0f mm of the sensor depth", keep.sum(), len(keep), tol * 1e3)
+    lm = lm.subset(keep)
+    lm.metadata["n_depth_rejected"] = int((~keep).sum())
     return lm
 
 
@@ -243,6 +265,9 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
         depth = {v.name: v.load_depth() for v in scene.mapping if v.depth_path is not None}
         lm = lipmap_linemap(scene, planes, lines_by_view, conf, depth)
         timings["extract_s"] = time.time() - t
+        from ..planes.check import plane_stats
+
+        lm.metadata["plane_stats"] = plane_stats(planes, scene.mapping)
     timings["total_s"] = time.time() - t0
     lm.metadata.update({"scene": scene.name, "dataset": scene.dataset, "pose_source": scene.pose_source,
                         "timings": timings, "method": method, "preset": conf.preset})

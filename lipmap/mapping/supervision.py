@@ -25,12 +25,16 @@ class LineSupervision:
         use_group: add the paper's group loss (off in the reference code).
         robust_scale: full-resolution pixels; > 0 makes each assignment's loss robust
             (:func:`lipmap.mapping.losses.robust_px`), 0 = the paper's plain distances.
+        max_assign_frac: assignments whose best edge is farther than this fraction of the image size are
+            skipped (another surface's edge); 0 = none skipped (reference code).
+        euc_inside_only: D_euc counts only endpoints projected inside the image (reference code).
         seed: sampling seed (combined with the iteration, so a resumed run samples the same pixels).
     """
 
     def __init__(self, lines_by_view: dict, weight: float = 0.1, pixels_per_line: int = 1, use_group: bool = False,
                  group_weight: float = 10.0, seed: int = 0,
-                 endpoint_weight: float = 0.5, robust_scale: float = 0.0):
+                 endpoint_weight: float = 0.5, robust_scale: float = 0.0, max_assign_frac: float = 0.1,
+                 euc_inside_only: bool = False):
         self.lines = {k: np.asarray(v, dtype=np.float64).reshape(-1, 4) for k, v in lines_by_view.items()}
         self.weight = weight
         self.pixels_per_line = max(0, pixels_per_line if not use_group else max(2, pixels_per_line))
@@ -39,20 +43,27 @@ class LineSupervision:
         self.seed = seed
         self.endpoint_weight = endpoint_weight
         self.robust_scale = robust_scale
+        self.max_assign_frac = max_assign_frac
+        self.euc_inside_only = euc_inside_only
         self._regions = {}
         self.last = {}
 
-    def _region(self, name, camera):
-        key = (name, camera.width, camera.height)
+    def regions(self, view, camera):
+        """Region pixels :math:`(P, 2)` (col, row) and their line :math:`(P,)` of ``view``'s lines on the grid of
+        ``camera`` (the training resolution): the full-resolution segments are scaled to it first (exact in
+        COLMAP's pixel convention)."""
+        key = (view.name, camera.width, camera.height)
         if key not in self._regions:
-            self._regions[key] = line_regions(self.lines[name], camera.width, camera.height)
+            s = camera.width / view.camera.width
+            self._regions[key] = line_regions(self.lines[view.name] * s, camera.width, camera.height)
         return self._regions[key]
 
     def settings(self) -> dict:
         """What shapes the loss, for the planes' artifact stamp."""
         return {"weight": self.weight, "pixels_per_line": self.pixels_per_line, "use_group": self.use_group,
                 "group_weight": self.group_weight, "seed": self.seed, "endpoint_weight": self.endpoint_weight,
-                "robust_scale": self.robust_scale}
+                "robust_scale": self.robust_scale, "max_assign_frac": self.max_assign_frac,
+                "euc_inside_only": self.euc_inside_only}
 
     def __call__(self, view, planes, iteration: int, render=None):
         """Line loss of ``view`` at the training resolution (that of ``render``; the view's own without one)."""
@@ -67,7 +78,7 @@ class LineSupervision:
             return zero
         s = camera.width / view.camera.width
         lines_s = lines * s  # exact in COLMAP's pixel convention
-        pix, li = self._region(view.name, camera)
+        pix, li = self.regions(view, camera)
         if len(pix) == 0:
             return zero
         if self.pixels_per_line == 0 and render is not None and tuple(render.hits.shape[:2]) == (camera.height, camera.width):
@@ -96,13 +107,15 @@ class LineSupervision:
         li = li[hit]
         edge, ang, dist, _ = best_edges(corners.detach().cpu().numpy().astype(np.float64), plane, lines_s[li],
                                         view.cam_from_world, camera)
-        # Assignments whose best edge is hopelessly far are noise (another surface's edge): skip them.
-        ok = np.isfinite(dist) & (dist < 0.1 * max(camera.width, camera.height))
+        ok = np.isfinite(dist)
+        if self.max_assign_frac > 0:  # an edge hopelessly far is another surface's: skip the assignment
+            ok &= dist < self.max_assign_frac * max(camera.width, camera.height)
         if not ok.any():
             return zero
         loss = line_loss(corners, plane[ok], edge[ok], lines_s[li[ok]], li[ok], view.cam_from_world, camera,
                          use_group=self.use_group, group_weight=self.group_weight,
-                         endpoint_weight=self.endpoint_weight, robust_scale=self.robust_scale * s)
+                         endpoint_weight=self.endpoint_weight, robust_scale=self.robust_scale * s,
+                         euc_inside_only=self.euc_inside_only)
         self.last = {"n_assign": int(ok.sum()), "loss": float(loss.detach())}
         # distances are in training-resolution pixels; express them in full-resolution pixels so the
         # balance with the plane loss does not change with the training scale

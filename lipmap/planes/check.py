@@ -33,23 +33,60 @@ def rendered_depth_errors(planes: Planes, views, max_width: int = 320, lam: floa
     Rendering at <= ``max_width`` px wide; the sensor depth is sampled at the same pixel centres.
     Returns median, mean, p90 (metres), coverage (fraction of valid pixels with alpha > 0.5), views.
     """
+    views = [v for v in views if v.depth_path is not None and v.cam_from_world is not None]
+    e = _depth_errors(planes, views, max_width, lam)
+    if not len(e["all"]):
+        return {"median": float("nan"), "mean": float("nan"), "p90": float("nan"), "coverage": float("nan"), "views": 0}
+    a = e["all"]
+    return {"median": float(np.median(a)), "mean": float(a.mean()), "p90": float(np.percentile(a, 90)),
+            "coverage": e["coverage"], "views": len(views)}
+
+
+def plane_stats(planes: Planes, views=(), max_views: int = 10, max_width: int = 320) -> dict:
+    """How coherent a plane set is: how many planes, how large (area-weighted, so a wall made of one plane
+    counts as much as the same wall in 1000 patches), and how far it is from the sensor depth.
+
+    Returns:
+        ``n_planes``, ``total_area_m2``, ``area_weighted_median_area_m2`` (half the planes' area lies in planes
+        at least this large), ``area_weighted_median_side_m`` (of the longer side), and over at most
+        ``max_views`` evenly spread ``views``: ``depth_error_median_cm``, ``depth_error_p90_cm``,
+        ``depth_error_over_5cm`` (fraction of pixels), ``coverage``.
+    """
+    r = planes.radii.detach().clamp(min=0).cpu().numpy().astype(np.float64)
+    w, h = r[:, 0] + r[:, 1], r[:, 2] + r[:, 3]
+    area, side = w * h, np.maximum(w, h)
+    out = {"n_planes": int(len(r)), "total_area_m2": float(area.sum())}
+    if len(r):
+        order = np.argsort(area)
+        cum = np.cumsum(area[order])
+        k = order[np.searchsorted(cum, 0.5 * cum[-1])]
+        out["area_weighted_median_area_m2"] = float(area[k])
+        order = np.argsort(side)
+        cum = np.cumsum(area[order])
+        out["area_weighted_median_side_m"] = float(side[order[np.searchsorted(cum, 0.5 * cum[-1])]])
+    views = [v for v in views if v.depth_path is not None and v.cam_from_world is not None]
+    if views:
+        pick = [views[i] for i in np.unique(np.linspace(0, len(views) - 1, min(max_views, len(views))).astype(int))]
+        errs = _depth_errors(planes, pick, max_width)
+        if len(errs["all"]):
+            out.update({"depth_error_median_cm": float(np.median(errs["all"]) * 100),
+                        "depth_error_p90_cm": float(np.percentile(errs["all"], 90) * 100),
+                        "depth_error_over_5cm": float(np.mean(errs["all"] > 0.05)), "coverage": errs["coverage"],
+                        "depth_views": len(pick)})
+    return out
+
+
+def _depth_errors(planes: Planes, views, max_width: int, lam: float = 1500.0) -> dict:
     errs, cov = [], []
     for v in views:
-        if v.depth_path is None or v.cam_from_world is None:
-            continue
         with torch.no_grad():
             r = render_view(planes, v, lam=lam, downscale=_working_downscale(v, max_width))
         gt = resize_nearest(v.load_depth(), r.depth.shape[1], r.depth.shape[0])
         ok = gt > 0
-        if not ok.any():
-            continue
-        errs.append(np.abs(r.depth.cpu().numpy() - gt)[ok])
-        cov.append(float((r.alpha.cpu().numpy()[ok] > 0.5).mean()))
-    if not errs:
-        return {"median": float("nan"), "mean": float("nan"), "p90": float("nan"), "coverage": float("nan"), "views": 0}
-    e = np.concatenate(errs)
-    return {"median": float(np.median(e)), "mean": float(e.mean()), "p90": float(np.percentile(e, 90)),
-            "coverage": float(np.mean(cov)), "views": len(errs)}
+        if ok.any():
+            errs.append(np.abs(r.depth.cpu().numpy() - gt)[ok])
+            cov.append(float((r.alpha.cpu().numpy()[ok] > 0.5).mean()))
+    return {"all": np.concatenate(errs) if errs else np.zeros(0), "coverage": float(np.mean(cov)) if cov else float("nan")}
 
 
 def raycast_mesh(planes: Planes, view, max_width: int = 320) -> np.ndarray:

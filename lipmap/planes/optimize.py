@@ -62,6 +62,9 @@ class PlaneOptConfig:
     split_grad_threshold: float = 0.2  # mean |d loss / d radius| over the epoch (see prune_and_split)
     split_stop_frac: float = 5000 / 6000  # no splitting after this fraction of the iterations
     split_into_four: bool = True  # both axes over the threshold -> 4 children, else 2
+    split_grad_reduce: str = "mean"  # |grad| of an axis from its two radii: "mean", or "max" (reference code)
+    depth_loss_on_rendered: bool = False  # depth L1 only where the render has alpha > 1e-5 (reference code)
+    reset_moments_on_recenter: bool = False  # zero Adam's moments of centre and radii after re-centring (reference)
     max_planes: int = 20000  # splitting never grows the set beyond this
     seed: int = 0
     device: str = "auto"  # "auto" = CUDA when available
@@ -109,8 +112,11 @@ def _fast_lines() -> PlaneOptConfig:
 
 
 def _paper() -> PlaneOptConfig:
-    # Reference-code settings: full resolution, 60 epochs, lr 1e-3, 1 cm voxels.
-    return PlaneOptConfig(name="paper", epochs=60, downscale=1, init=PlaneInitConfig(voxel_size=0.01, depth_downscale=1))
+    # Reference-code settings: full resolution, 60 epochs, lr 1e-3, 1 cm voxels, its depth mask, moment reset
+    # and split criterion. Plane loss 2 * depth + 5 * normal as the reference codes it (the paper's text
+    # writes the weights as lambda_d and lambda_n without values).
+    return PlaneOptConfig(name="paper", epochs=60, downscale=1, split_grad_reduce="max", depth_loss_on_rendered=True,
+                          reset_moments_on_recenter=True, init=PlaneInitConfig(voxel_size=0.01, depth_downscale=1))
 
 
 confs = {"fast": _fast(), "fast-lines": _fast_lines(), "paper": _paper()}
@@ -172,8 +178,9 @@ def plane_loss(render: RenderOutput, target: ViewTarget, conf: PlaneOptConfig) -
     loss = None
     if render.n_pairs == 0:  # every plane culled for this view
         return None
-    if render.depth.requires_grad and bool(target.depth_valid.any()):
-        dl = (render.depth - target.depth)[target.depth_valid].abs().mean()
+    valid = target.depth_valid & (render.alpha.detach() > 1e-5) if conf.depth_loss_on_rendered else target.depth_valid
+    if render.depth.requires_grad and bool(valid.any()):
+        dl = (render.depth - target.depth)[valid].abs().mean()
         parts["depth"] = float(dl.detach())
         loss = conf.depth_weight * dl
     if render.normal.requires_grad and bool(target.normal_valid.any()):
@@ -364,10 +371,15 @@ class _EpochStats:
         return cls(torch.zeros(K, dtype=torch.bool, device=device), torch.zeros(K, 2, device=device),
                    torch.zeros(K, device=device))
 
-    def add_step(self, total: torch.Tensor, parts: Optional[dict], radii_grad: Optional[torch.Tensor], vis: torch.Tensor):
+    def add_step(self, total: torch.Tensor, parts: Optional[dict], radii_grad: Optional[torch.Tensor], vis: torch.Tensor,
+                 reduce: str = "mean"):
         g = radii_grad.abs() if radii_grad is not None else torch.zeros_like(self.grad_sum[:, :1]).expand(-1, 4)
-        self.grad_sum[:, 0] += 0.5 * (g[:, 0] + g[:, 1])
-        self.grad_sum[:, 1] += 0.5 * (g[:, 2] + g[:, 3])
+        if reduce == "max":
+            self.grad_sum[:, 0] += torch.maximum(g[:, 0], g[:, 1])
+            self.grad_sum[:, 1] += torch.maximum(g[:, 2], g[:, 3])
+        else:
+            self.grad_sum[:, 0] += 0.5 * (g[:, 0] + g[:, 1])
+            self.grad_sum[:, 1] += 0.5 * (g[:, 2] + g[:, 3])
         self.grad_count += vis.float()
         self.loss += float(total.detach())
         self.depth += parts.get("depth", 0.0) if parts else 0.0
@@ -387,8 +399,9 @@ def _total_loss(pl: Optional[tuple], extra, plane_scale: float):
     return total
 
 
-def _apply_step(opt: torch.optim.Adam, params: list, total: torch.Tensor) -> None:
-    """Backward, Adam step, then the reference's re-centring and quaternion normalisation."""
+def _apply_step(opt: torch.optim.Adam, params: list, total: torch.Tensor, reset_moments: bool = False):
+    """Backward, Adam step, then the reference's re-centring and quaternion normalisation (and, with
+    ``reset_moments``, its reset of the centre's and radii's Adam moments, as a replaced tensor gets)."""
     opt.zero_grad(set_to_none=False)
     total.backward()
     for p in params:
@@ -401,6 +414,12 @@ def _apply_step(opt: torch.optim.Adam, params: list, total: torch.Tensor) -> Non
         params[0].copy_(rec.center)
         params[2].copy_(rec.radii)
         params[1].div_(params[1].norm(dim=1, keepdim=True).clamp(min=1e-12))
+        if reset_moments:
+            for p in (params[0], params[2]):
+                st = opt.state.get(p)
+                if st:
+                    st["exp_avg"].zero_()
+                    st["exp_avg_sq"].zero_()
     return radii_grad
 
 
@@ -418,8 +437,8 @@ def _train_view(params, opt, tgt: ViewTarget, it: int, sched: Schedule, extra_lo
     if total is None or not torch.isfinite(total):
         stats.skipped += 1
         return None
-    radii_grad = _apply_step(opt, params, total)
-    stats.add_step(total, pl[1] if pl else None, radii_grad, vis)
+    radii_grad = _apply_step(opt, params, total, conf.reset_moments_on_recenter)
+    stats.add_step(total, pl[1] if pl else None, radii_grad, vis, conf.split_grad_reduce)
     return total
 
 
