@@ -3,8 +3,10 @@
 A 0.6 x 0.4 m panel 2 m in front of a tiled back wall (tiles, because radii are clamped at 0.5 m);
 the panel's plane starts 3 cm too large on every side and turned by 1.5 degrees in its plane. The
 joint loss (plane loss + line term) must bring its four edges onto the detected lines, so that
-extraction finds them within the paper's thresholds (1 px, 0.01 rad); the plane loss alone must not.
+extraction finds them within the paper's thresholds (1 px, 0.01 rad), and closer than the plane loss
+alone gets them (which, against this exact depth, still leaves them ~4-5 mm off).
 """
+import contextlib
 import functools
 import types
 
@@ -51,19 +53,47 @@ def _planes(corners, grow=0.0, turn_deg=0.0):
                   torch.tensor(radii, dtype=torch.float32))
 
 
-@functools.lru_cache(maxsize=None)
+@contextlib.contextmanager
+def _torch_threads(n):
+    """Run torch ops with ``n`` intra-op threads, then restore the previous count."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+# The corner errors below are deterministic on a machine but not across machines: float reduction order
+# changes with the thread count (and the CPU's SIMD width), and a 160-step Adam run amplifies it. Two
+# measures keep the outcome robust (spread measured over seeds 0-9 of PlaneOptConfig and LineSupervision
+# x 1 / 2 torch threads, on an AVX-512 CPU): the optimization runs on 1 thread, so the core count no
+# longer matters (and a loaded 2-core machine runs it in ~8 s instead of 60-380 s with 2 spinning
+# threads), and the learning rates are annealed to 10 % (lr_final_frac, as the fast-lines preset does):
+# at a constant 3e-3 Adam moves the edges by ~3 mm per step to the end, so the errors were that jitter
+# (max 1.6-6.4 mm with the line term, 3.0-9.2 mm without (seeds 0-4): no bound separated them);
+# annealed they settle.
 def _optimize(line_weight, pixels_per_line=1, endpoint_weight=0.0):
+    return _optimize_cached(float(line_weight), int(pixels_per_line), float(endpoint_weight))  # one cache key per run
+
+
+@functools.lru_cache(maxsize=None)
+def _optimize_cached(line_weight, pixels_per_line, endpoint_weight):
     corners, views = panel_scene()
     lines = {v.name: detected(corners, v, shrink=0.05) for v in views}  # fragments 5 % short at each end
     frames = [DepthFrame(v, v.camera, v.cam_from_world, raycast_depth(corners, v)) for v in views]
-    conf = PlaneOptConfig.preset("fast", epochs=40, lr_center=3e-3, lr_quat=3e-3, lr_radii=3e-3,
+    conf = PlaneOptConfig.preset("fast", epochs=40, lr_center=3e-3, lr_quat=3e-3, lr_radii=3e-3, lr_final_frac=0.1,
                                  prune_unseen=False, progress=False)
     init = _planes(corners, grow=0.03, turn_deg=1.5)
     sup = LineSupervision(lines, weight=line_weight, pixels_per_line=pixels_per_line, endpoint_weight=endpoint_weight)
-    planes, _ = optimize_planes(prepare_targets(frames, conf), init, conf, extra_loss=sup)
+    with _torch_threads(1):
+        planes, _ = optimize_planes(prepare_targets(frames, conf), init, conf, extra_loss=sup)
     got = planes.corners().numpy().astype(float)
     err = np.linalg.norm(got[0][:, None] - corners[0][None], axis=-1).min(1)  # panel corners, metres
     return corners, views, lines, init, got, err
+
+
+ERR_BOUND = 0.002  # m, panel corners after the joint optimization (see the spread above)
 
 
 @pytest.mark.parametrize("pixels_per_line", [1, 0])
@@ -71,7 +101,9 @@ def test_joint_optimization_puts_edges_on_detected_lines(pixels_per_line):
     corners, views, lines, init, got, err = _optimize(0.1, pixels_per_line)
     before = extract_observations(init.corners().numpy().astype(float), views, lines, ExtractConfig(), progress=False)
     assert len(before["plane"]) == 0  # nothing passes the paper's thresholds before optimizing
-    assert err.max() < 0.004, err  # started 4-5 cm away
+    # started 4-5 cm away. Worst 1.34 mm (ppl 1) / 0.83 mm (ppl 0) over seeds 0-9 x 1/2 threads (seed 0:
+    # 0.58 / 0.53 mm); bound 1.5x the worst; the plane loss alone leaves 3.75-4.99 mm (test below)
+    assert err.max() < ERR_BOUND, err
     obs = extract_observations(got, views, lines, ExtractConfig(), progress=False)
     assert {(0, 0), (0, 1), (0, 2), (0, 3)} <= set(zip(obs["plane"].tolist(), obs["edge"].tolist()))
     lines3d, _, edge_line = merge_edges(got, obs, ExtractConfig())
@@ -85,12 +117,21 @@ def test_joint_optimization_puts_edges_on_detected_lines(pixels_per_line):
         assert np.linalg.norm(perp, axis=1).max() < 0.005
 
 
+def test_plane_loss_alone_leaves_edges_off():
+    """What the line term is for: without it (line weight 0) the corners stay outside the bound above."""
+    *_, err = _optimize(0.0)
+    assert err.max() > ERR_BOUND, err  # 3.75-4.99 mm over seeds 0-9 x 1/2 threads (seed 0: 3.75 mm)
+
+
 def test_endpoint_term_shrinks_planes_to_short_detections():
     """With detections 5 % short at each end, the reference form (0.5 * D_euc) drags the panel's ends
     inwards; the orthogonal term alone (``endpoint_weight=0``) does not."""
-    *_, err_ort = _optimize(0.1, endpoint_weight=0.0)
-    *_, err_euc = _optimize(0.1, endpoint_weight=0.5)
-    assert err_euc.max() > 2 * err_ort.max()
+    # Every (line, plane) pair (pixels_per_line=0): with one sampled pixel per line the drag is erratic (max
+    # error 2.2-5.3 mm annealed, 2.7-29 mm at a constant lr: the ratio fell below 2 for 1 and 4 of 10 seeds).
+    # Here err_euc 2.42-2.60 mm vs err_ort 0.25-0.83 mm over seeds 0-9 x 1/2 threads: ratio >= 2.9.
+    *_, err_ort = _optimize(0.1, 0, endpoint_weight=0.0)
+    *_, err_euc = _optimize(0.1, 0, endpoint_weight=0.5)
+    assert err_euc.max() > 2 * err_ort.max(), (err_euc, err_ort)
 
 
 def test_depth_check_rejects_lines_off_the_sensor_depth():
