@@ -35,13 +35,18 @@ class LineQueryConfig:
     # few pixels off, a 1-px region can fall wholly on the far side of the edge and miss its plane.
     region_radius: float = 3.0
     occlusion_tol: float = 0.05  # m, projection method's visibility test against the planes
+    min_support: int = 1  # map lines seen in fewer mapping images are not queried (1: all)
+    one_to_one: bool = False  # a map line matches at most one query line (its best), as a point matches one keypoint
 
 
 class LineQuery:
     """Holds a line map's lines, planes and raycaster; ``match`` answers one query."""
 
-    def __init__(self, lines3d: np.ndarray, corners: np.ndarray | None = None, edge_line: np.ndarray | None = None):
+    def __init__(self, lines3d: np.ndarray, corners: np.ndarray | None = None, edge_line: np.ndarray | None = None,
+                 supports: np.ndarray | None = None):
         self.lines = np.asarray(lines3d, dtype=float).reshape(-1, 2, 3)
+        self.support = (np.full(len(self.lines), np.iinfo(np.int32).max) if supports is None
+                        else np.asarray(supports).reshape(len(self.lines), -1)[:, 0])
         self.corners = None if corners is None or len(corners) == 0 else np.asarray(corners, dtype=float)
         self.edge_line = None if edge_line is None else np.asarray(edge_line, dtype=np.int64)
         self.caster = PlaneRaycaster(self.corners) if self.corners is not None else None
@@ -49,7 +54,7 @@ class LineQuery:
     @classmethod
     def from_linemap(cls, linemap) -> "LineQuery":
         planes = linemap.planes or {}
-        return cls(linemap.lines, planes.get("corners"), planes.get("edge_line"))
+        return cls(linemap.lines, planes.get("corners"), planes.get("edge_line"), linemap.supports)
 
     def match(self, lines2d: np.ndarray, cam_from_world: np.ndarray, camera, conf: LineQueryConfig) -> dict:
         """2D-3D line matches for a query.
@@ -88,6 +93,7 @@ class LineQuery:
         edge, _, _, _ = best_edges(self.corners, plane, q[li], T, camera)
         line3d = self.edge_line[plane, edge]
         ok = line3d >= 0
+        ok[ok] &= self.support[line3d[ok]] >= conf.min_support
         # About half of a region lies on the far side of the edge and hits another surface, so the
         # vote counts only pixels that resolved to some map line.
         resolved = np.bincount(li[ok], minlength=len(q)).astype(float)
@@ -109,6 +115,7 @@ class LineQuery:
 
     def _projection(self, q, T, camera, conf):
         vis = self.visible_lines(T, camera, conf.occlusion_tol)
+        vis = vis[self.support[vis] >= conf.min_support]
         if len(vis) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         proj, _ = geo.project_segments(self.lines[vis], T, camera)
@@ -143,6 +150,13 @@ class LineQuery:
             ang = geo.angle_distance(qs, proj)
             dist = geo.perpendicular_distance(qs, proj, "max")
         ok = valid & (ang <= np.radians(conf.max_angle_deg)) & (dist <= conf.max_dist_px)
+        if conf.one_to_one and ok.any():
+            score = np.where(ok, dist + 10 * np.degrees(ang) / max(conf.max_angle_deg, 1e-9), np.inf)
+            order = np.lexsort((score, cand_l))  # best query line first for each map line
+            first = np.r_[True, cand_l[order][1:] != cand_l[order][:-1]]
+            keep = np.zeros_like(ok)
+            keep[order[first]] = True
+            ok &= keep
         return {
             "query_idx": cand_q[ok],
             "line_idx": cand_l[ok],

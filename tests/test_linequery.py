@@ -58,3 +58,30 @@ def test_short_and_empty():
     assert len(m["query_idx"]) == 0
     m = LineQuery(np.zeros((0, 2, 3))).match(np.array([[0, 0, 100, 0.0]]), views[0].cam_from_world, SMALL_CAMERA, LineQueryConfig())
     assert len(m["line_idx"]) == 0
+
+
+@pytest.mark.parametrize("method", ["raycast", "projection"])
+def test_min_support_keeps_unverified_map_lines_out_of_the_query(method):
+    corners, views, lines, edge_line = _map()
+    T = views[1].cam_from_world
+    q = _query_lines(lines[:4], T)
+    supports = np.array([[5, 6], [1, 1], [3, 3], [2, 2], [1, 1], [1, 1], [1, 1], [1, 1]])
+    lq = LineQuery(lines, corners, edge_line, supports)
+    m = lq.match(q, T, SMALL_CAMERA, LineQueryConfig(method=method, min_support=2))
+    assert sorted(m["line_idx"]) == [0, 2, 3]  # line 1 is seen in one mapping image only
+    assert sorted(lq.match(q, T, SMALL_CAMERA, LineQueryConfig(method=method))["line_idx"]) == [0, 1, 2, 3]
+
+
+def test_one_to_one_keeps_the_best_query_line_of_each_map_line():
+    corners, views, lines, edge_line = _map()
+    T = views[1].cam_from_world
+    q = _query_lines(lines[:1], T)
+    d = q[0, 2:] - q[0, :2]
+    n = np.array([-d[1], d[0]]) / np.linalg.norm(d)
+    near = q + 1.5 * np.concatenate([n, n])  # a second detection 1.5 px beside the first
+    both = np.concatenate([near, q])
+    lq = LineQuery(lines, corners, edge_line)
+    conf = LineQueryConfig(method="projection", max_dist_px=4)
+    assert sorted(lq.match(both, T, SMALL_CAMERA, conf)["query_idx"]) == [0, 1]
+    m = lq.match(both, T, SMALL_CAMERA, LineQueryConfig(method="projection", max_dist_px=4, one_to_one=True))
+    assert m["query_idx"].tolist() == [1] and m["line_idx"].tolist() == [0]  # the exact one wins
