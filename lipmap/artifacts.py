@@ -46,6 +46,11 @@ def digest(obj, n: int = 12) -> str:
     return hashlib.sha256(canonical_json(obj).encode()).hexdigest()[:n]
 
 
+def _canonical_bytes(a) -> bytes:
+    # rounded, and -0.0 made 0.0: the same pose read or computed twice must give the same bytes
+    return (np.round(np.asarray(a, dtype=np.float64), 9) + 0.0).tobytes()
+
+
 def views_key(views) -> dict:
     """What a step reads from a list of views besides their files: names, cameras, poses, depth sensor.
 
@@ -56,11 +61,11 @@ def views_key(views) -> dict:
         h.update(v.name.encode())
         h.update(canonical_json(list(v.camera.params) + [v.camera.width, v.camera.height]).encode())
         if v.cam_from_world is not None:
-            h.update(np.round(np.asarray(v.cam_from_world, dtype=np.float64), 9).tobytes())
+            h.update(_canonical_bytes(v.cam_from_world))
         if getattr(v, "depth_camera", None) is not None:
             h.update(canonical_json(list(v.depth_camera.params)).encode())
         if getattr(v, "color_from_depth", None) is not None:
-            h.update(np.round(np.asarray(v.color_from_depth, dtype=np.float64), 9).tobytes())
+            h.update(_canonical_bytes(v.color_from_depth))
     return {"n": len(views), "sha": h.hexdigest()[:16]}
 
 

@@ -43,15 +43,19 @@ RESULT_FILES = {"point": "results_point.txt", "point+line": "results_point_line.
 class LocalizationConfig:
     seed: int = 0
     max_point_matches: Optional[int] = None  # seeded random subset per query (same for both methods)
+    match_seed: Optional[int] = None  # seed of that subset (None: ``seed``); vary it alone to average over draws
     points: str = "sift-n4096"  # localization.points preset (built-in SIFT)
     retrieval: str = "vlad64"  # localization.retrieval preset
     num_retrieved: int = 10
     point_pose: PointPoseConfig = field(default_factory=PointPoseConfig)
     point_line_pose: PointLinePoseConfig = field(default_factory=PointLinePoseConfig)
     line_query: LineQueryConfig = field(default_factory=LineQueryConfig)
-    line_iters: int = 2  # line query -> refine, repeated with the refined pose
+    line_iters: int = 2  # line query -> refine, repeated with the refined pose (when line_gates is empty)
+    # per iteration (max_dist_px, max_angle_deg) gates of the line query, overriding line_iters and the gates of
+    # line_query: wide while the pose is the point-only one, narrower once lines have refined it; () = fixed gates
+    line_gates: tuple = ((8.0, 3.0), (4.0, 2.0), (2.0, 1.0))
     mapping: str = "fast"  # lipmap.mapping.pipeline preset
-    map_method: str = "lift"  # the map that helped the pose most when last measured (README, benchmarks/results)
+    map_method: str = "lipmap"  # the LiP-Map map: it helps the pose more than lift's (README, benchmarks/results)
 
     def digest(self) -> str:
         return digest(asdict(self), 10)
@@ -140,7 +144,7 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
     except InputError as e:
         rec["error"] = str(e)
         return rec
-    idx = subsample_matches(len(pm), conf.max_point_matches, conf.seed, name)
+    idx = subsample_matches(len(pm), conf.max_point_matches, conf.seed if conf.match_seed is None else conf.match_seed, name)
     pm = pm.subset(idx)
     est = estimate_pose_points(pm.p2d, pm.p3d, camera, replace(conf.point_pose, seed=conf.seed))
     t_point = (time.perf_counter() - t0) * 1000
@@ -154,8 +158,9 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
     T = est["cam_from_world"]
     m, inliers, used_lines = None, None, False
     plconf = replace(conf.point_line_pose, seed=conf.seed)
-    for _ in range(max(1, conf.line_iters)):
-        tried = lq.match(lines2d, T, camera, conf.line_query)
+    visible = lq.visible_lines(T, camera, conf.line_query.occlusion_tol) if conf.line_query.method == "projection" else None
+    for lconf in line_query_schedule(conf):
+        tried = lq.match(lines2d, T, camera, lconf, visible)
         r = estimate_pose_point_line(pm.p2d, pm.p3d, tried["lines2d"], tried["lines3d"], camera, initial=T, conf=plconf)
         if not r["success"]:
             m = m or tried  # the matches the pose rests on: the last successful refinement's
@@ -172,6 +177,13 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
         rec["point+line"]["n_line_matches_correct"] = int(ok.sum())
         rec["point+line"]["n_line_inliers_correct"] = int((ok & inliers).sum()) if used_lines else 0
     return rec
+
+
+def line_query_schedule(conf: LocalizationConfig) -> list:
+    """The :class:`LineQueryConfig` of each query-and-refine iteration."""
+    if conf.line_gates:
+        return [replace(conf.line_query, max_dist_px=float(d), max_angle_deg=float(a)) for d, a in conf.line_gates]
+    return [conf.line_query] * max(1, conf.line_iters)
 
 
 def _T(T):

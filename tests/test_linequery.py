@@ -81,7 +81,7 @@ def test_one_to_one_keeps_the_best_query_line_of_each_map_line():
     near = q + 1.5 * np.concatenate([n, n])  # a second detection 1.5 px beside the first
     both = np.concatenate([near, q])
     lq = LineQuery(lines, corners, edge_line)
-    conf = LineQueryConfig(method="projection", max_dist_px=4)
+    conf = LineQueryConfig(method="projection", max_dist_px=4, one_to_one=False)
     assert sorted(lq.match(both, T, SMALL_CAMERA, conf)["query_idx"]) == [0, 1]
     m = lq.match(both, T, SMALL_CAMERA, LineQueryConfig(method="projection", max_dist_px=4, one_to_one=True))
     assert m["query_idx"].tolist() == [1] and m["line_idx"].tolist() == [0]  # the exact one wins

@@ -30,9 +30,9 @@ class MappingConfig:
 
     preset: str = "fast"
     lines: str = "lsd"  # lipmap.lines2d preset
-    planes: str = "fast-lines"  # lipmap.planes.optimize preset
-    line_weight: float = 1.0  # paper alpha_L 0.1; the robust loss below lets a higher weight help without bending planes
-    pixels_per_line: int = 1  # region pixels sampled per line per iteration (reference: 1)
+    planes: object = "fast-lines"  # lipmap.planes.optimize preset name, or {"preset": name, **overrides}
+    line_weight: float = 3.0  # paper alpha_L 0.1; the robust loss below lets a higher weight help without bending planes
+    pixels_per_line: int = 0  # every region pixel, each (line, first-hit plane) pair once (reference: 1 sampled pixel)
     group_loss: bool = False  # the paper's group loss; off in the reference code, ~1.6x the time for little gain
     endpoint_weight: float = 0.0  # D_euc weight (reference 0.5): it drags edges to the ends of short fragments
     robust_scale: float = 2.0  # px (full resolution), 0 = paper: an edge far from its line is usually another surface's
@@ -40,8 +40,8 @@ class MappingConfig:
     euc_inside_only: bool = False  # D_euc only over endpoints inside the image (reference; moot without D_euc)
     on_plane_lines: bool = True  # lift the detections no plane edge explains onto the planes (ours, not the paper's)
     plane_depth_tol: float = 0.03  # m: on-plane lines take the input depth where the planes are farther from it (clutter)
-    # 2 px / 0.02 rad: "fast" trains at half resolution, where the paper's 1 px is half a training pixel
-    extract: ExtractConfig = field(default_factory=lambda: ExtractConfig(max_dist=2.0, max_angle=0.02))
+    # 3 px / 0.03 rad: "fast" trains at half resolution, where the paper's 1 px is half a training pixel
+    extract: ExtractConfig = field(default_factory=lambda: ExtractConfig(max_dist=3.0, max_angle=0.03))
     lift: str = "lift-merge-loose"  # lipmap.lift preset: method "lift", and the on-plane lines of "lipmap"
     seed: int = 0
 

@@ -72,9 +72,11 @@ class PlaneOptConfig:
     init: PlaneInitConfig = field(default_factory=PlaneInitConfig)
 
     @staticmethod
-    def preset(name: str = "fast", **overrides) -> "PlaneOptConfig":
-        """Preset ``name`` with field overrides (``init`` takes a dict of overrides or a PlaneInitConfig)."""
-        return resolve({"preset": name, **overrides}, confs, "plane optimization", default="fast")
+    def preset(name="fast", **overrides) -> "PlaneOptConfig":
+        """Preset ``name`` (or a dict ``{"preset": name, **overrides}``) with field overrides (``init`` takes a
+        dict of overrides or a PlaneInitConfig)."""
+        base = dict(name) if isinstance(name, dict) else {"preset": name}
+        return resolve({**base, **overrides}, confs, "plane optimization", default="fast")
 
     def to_dict(self) -> dict:
         return asdict(self)

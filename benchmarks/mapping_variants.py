@@ -1,0 +1,88 @@
+"""What each mapping setting is worth: lipmap maps of one scene with named overrides of a preset, side by side.
+
+    python benchmarks/mapping_variants.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
+        --scene redkitchen --out OUT [--preset fast] [--base NAME] NAME='{"line_weight": 1.0}' NAME2='{...}' ...
+
+Each variant is mapped into OUT/<NAME> (reused when a map made with the same settings is there). A variant that
+changes only extraction-side settings (``extract``, ``plane_depth_tol``, ``on_plane_lines``, ``lift``) starts
+from the planes of ``--base`` (copied: their stamp says they are the same planes), so it costs seconds, not a
+plane optimization. Prints a table (full map and plane edges alone: F@5cm, R@50mm, median images per line;
+plane count and depth error) and writes it to ``benchmarks/results/mapping-variants-<dataset>-<scene>.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from lipmap.datasets import load_scene
+from lipmap.evaluation import evaluate_linemap, load_ground_truth, scene_ground_truth
+from lipmap.linemap import LineMap
+from lipmap.mapping.extract import ExtractConfig
+from lipmap.mapping.pipeline import edge_line_mask, get_conf, map_scene
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import results  # noqa: E402
+
+EXTRACTION_ONLY = {"extract", "plane_depth_tol", "on_plane_lines", "lift"}
+HEADER = ["variant", "overrides", "lines", "F@5cm", "R@50mm", "edge lines", "edges F@5cm", "edges R@50mm",
+          "median images per line (edges)", "planes", "plane depth error median / > 5 cm", "mapping time"]
+
+
+def _conf(preset: str, over: dict):
+    over = dict(over)
+    if "extract" in over:  # overrides of the preset's extraction settings
+        base = get_conf(preset).extract
+        over["extract"] = ExtractConfig(**{**base.__dict__, **over["extract"]})
+    return {"preset": preset, **over}
+
+
+def _metrics(lm, gt) -> dict:
+    r = evaluate_linemap(lm, gt)
+    m1, m2 = r["M1"]["line"], r["M2"]
+    return {"n": len(lm), "prec": m1["prec@0.05"], "recall": m1["recall@0.05"], "f": m1["f@0.05"], "r5": m2["R@5mm"],
+            "r50": m2["R@50mm"], "median_images": float(np.median(lm.supports[:, 0])) if len(lm) else 0.0}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dataset", required=True, choices=["7scenes", "synthetic"])
+    ap.add_argument("--root", type=Path, required=True)
+    ap.add_argument("--scene", required=True)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--preset", default="fast")
+    ap.add_argument("--base", default=None, help="the variant whose planes extraction-only variants reuse")
+    ap.add_argument("variants", nargs="+", help="NAME=JSON overrides of the preset ('{}' for the preset itself)")
+    args = ap.parse_args(argv)
+    scene = load_scene(args.dataset, args.root, args.scene)
+    gt = load_ground_truth(scene_ground_truth(scene))
+    rows, data = [], {}
+    for spec in args.variants:
+        name, _, text = spec.partition("=")
+        over = json.loads(text or "{}")
+        out = args.out / name
+        if args.base and over and set(over) <= EXTRACTION_ONLY and not (out / "planes.h5").exists():
+            out.mkdir(parents=True, exist_ok=True)
+            for f in ("planes.h5", "lines2d.h5"):
+                shutil.copy(args.out / args.base / f, out / f)
+        lm = LineMap.load(map_scene(scene, out, _conf(args.preset, over), "lipmap"))
+        full, edges = _metrics(lm, gt), _metrics(lm.subset(edge_line_mask(lm)), gt)
+        ps = lm.metadata.get("plane_stats", {})
+        t = lm.metadata.get("timings", {}).get("optimize_s")
+        data[name] = {"overrides": over, "full": full, "edges": edges, "plane_stats": ps, "timings": lm.metadata.get("timings")}
+        rows.append([name, f"`{json.dumps(over)}`" if over else f"preset `{args.preset}`", full["n"], f"{full['f']:.3f}",
+                     f"{full['r50']:.0f}", edges["n"], f"{edges['f']:.3f}", f"{edges['r50']:.0f}",
+                     f"{full['median_images']:.0f} ({edges['median_images']:.0f})", ps.get("n_planes", ""),
+                     f"{ps.get('depth_error_median_cm', float('nan')):.1f} cm / {100 * ps.get('depth_error_over_5cm', float('nan')):.0f} %",
+                     "" if t is None or (args.base and set(over) <= EXTRACTION_ONLY and over) else f"{lm.metadata['timings']['total_s']:.0f} s"])
+        print("| " + " | ".join(map(str, rows[-1])) + " |", flush=True)
+    results.write(f"mapping-variants-{scene.dataset}-{scene.name}", {"preset": args.preset, "variants": data,
+                                                                      "table": {"header": HEADER, "rows": rows}})
+
+
+if __name__ == "__main__":
+    main()

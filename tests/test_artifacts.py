@@ -1,0 +1,82 @@
+"""The reuse rule of cached artifacts (lipmap.artifacts): reuse only what the same settings made."""
+import h5py
+import numpy as np
+import pytest
+
+from lipmap.artifacts import (Stamp, StaleArtifactError, describe_difference, digest, read_stamp, reuse, scene_key,
+                              variant_dir, views_key, write_stamp)
+from lipmap.testing import wall_scene
+
+
+def _h5(path, stamp=None):
+    with h5py.File(path, "w") as f:
+        f.create_dataset("x", data=np.arange(3))
+        if stamp is not None:
+            for k, v in stamp.h5_attrs().items():
+                f.attrs[k] = v
+    return path
+
+
+def test_digest_is_canonical():
+    assert digest({"a": 1, "b": [1.0, 2]}) == digest({"b": [1.0, 2], "a": 1})
+    assert digest({"a": 1}) != digest({"a": 2})
+    assert Stamp("s", {"a": 1}).digest != Stamp("t", {"a": 1}).digest
+
+
+def test_reuse_only_with_the_same_settings(tmp_path):
+    a, b = Stamp("lines2d", {"detector": "lsd", "min_length": 15}), Stamp("lines2d", {"detector": "lsd", "min_length": 30})
+    path = tmp_path / "lines2d.h5"
+    assert reuse(path, a) is False  # nothing there
+    _h5(path, a)
+    assert read_stamp(path) == a and reuse(path, a) is True
+    with pytest.raises(StaleArtifactError, match=r"lines2d\.h5: was made by lines2d with other settings .*min_length: 15 -> 30"):
+        reuse(path, b)
+    assert path.exists()  # a refusal touches nothing
+    assert reuse(path, b, replace_stale=True) is False and not path.exists()  # cheap steps redo instead
+    _h5(path, a)
+    assert reuse(path, a, overwrite=True) is False and not path.exists()
+
+
+def test_an_artifact_without_a_stamp_is_never_reused(tmp_path):
+    path = _h5(tmp_path / "planes.h5")
+    with pytest.raises(StaleArtifactError, match="no record of the settings"):
+        reuse(path, Stamp("planes", {}))
+
+
+def test_text_files_and_folders_carry_their_stamp(tmp_path):
+    s = Stamp("pairs", {"k": 10})
+    txt = tmp_path / "pairs.txt"
+    txt.write_text("a b\n")
+    write_stamp(txt, s)
+    assert (tmp_path / "pairs.txt.stamp.json").exists() and reuse(txt, s)
+    model = tmp_path / "sfm"
+    model.mkdir()
+    write_stamp(model, s)
+    assert (model / "lipmap-stamp.json").exists() and reuse(model, s)
+    assert reuse(model, Stamp("pairs", {"k": 5}), replace_stale=True) is False and not model.exists()
+
+
+def test_describe_difference_names_the_shallowest_keys_first():
+    old = Stamp("linemap", {"method": "lift", "lift": {"x": 1}, "scene": {"views": 1}})
+    new = Stamp("linemap", {"method": "lipmap", "mapping": {"y": 2}, "scene": {"views": 2}})
+    text = describe_difference(old, new)
+    assert text.index("method: 'lift' -> 'lipmap'") < text.index("scene.views: 1 -> 2")
+    assert "lift: {...} -> '<unset>'" in text
+
+
+def test_input_keys_change_with_poses_and_pose_source(tmp_path):
+    corners, views = wall_scene()
+    k = views_key(views)
+    moved = [v.with_pose(v.cam_from_world @ np.diag([1.0, 1.0, 1.0, 1.0])) for v in views]
+    assert views_key(moved) == k
+    moved[0] = views[0].with_pose(views[0].cam_from_world + np.eye(4) * 0)
+    moved[0].cam_from_world[0, 3] += 1e-3
+    assert views_key(moved) != k
+
+    class S:
+        name, dataset, depth_registered, meta, mapping = "s", "7scenes", True, {}, views
+    a, b = S(), S()
+    b.pose_source = "sfm"
+    a.pose_source = "posetxt"
+    assert scene_key(a) != scene_key(b)
+    assert variant_dir(tmp_path, "map-lift-fast", Stamp("linemap", scene_key(a))).name.startswith("map-lift-fast-")

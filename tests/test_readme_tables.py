@@ -1,0 +1,42 @@
+"""The README's tables are generated from benchmarks/results/ (one source per figure): they must agree, and
+every results file must say how it was made."""
+import importlib.util
+import json
+
+from conftest import REPO
+
+
+def _readme_tables():
+    spec = importlib.util.spec_from_file_location("readme_tables", REPO / "benchmarks" / "readme_tables.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_readme_tables_are_generated_from_the_results():
+    mod = _readme_tables()
+    text = (REPO / "README.md").read_text()
+    blocks = mod.BLOCK.findall(text)
+    assert blocks, "the README has no generated table"
+    assert mod.render(text) == text, "README.md is out of date: run python benchmarks/readme_tables.py"
+
+
+def test_every_result_records_command_commit_machine_and_date():
+    files = sorted((REPO / "benchmarks" / "results").glob("*.json"))
+    assert files
+    for f in files:
+        p = json.loads(f.read_text())["provenance"]
+        assert p["command"].startswith("python benchmarks/") and p["commit"] and p["date"], f.name
+        assert p["machine"]["cores"] >= 1 and p["machine"]["cpu"], f.name
+
+
+def test_a_block_renders_its_rows_and_provenance(tmp_path, monkeypatch):
+    mod = _readme_tables()
+    res = {"provenance": {"command": "python benchmarks/x.py", "commit": "abc1234", "dirty": False, "date": "2026-12-01 10:00 UTC",
+                          "machine": {"cpu": "CPU", "cores": 2}},
+           "table": {"header": ["a", "b"], "rows": [[1, 2], ["", 3]]}}
+    (tmp_path / "t.json").write_text(json.dumps(res))
+    monkeypatch.setattr(mod.results, "RESULTS", tmp_path)
+    out = mod.render("x\n<!-- results: t -->\nold\n<!-- /results -->\ny\n")
+    assert out.startswith("x\n<!-- results: t -->\n| a | b |\n| --- | --- |\n| 1 | 2 |\n|  | 3 |\n")
+    assert "commit abc1234" in out and "`python benchmarks/x.py`" in out and out.endswith("<!-- /results -->\ny\n")
