@@ -45,8 +45,8 @@ class LineQuery:
     def __init__(self, lines3d: np.ndarray, corners: np.ndarray | None = None, edge_line: np.ndarray | None = None,
                  supports: np.ndarray | None = None):
         self.lines = np.asarray(lines3d, dtype=float).reshape(-1, 2, 3)
-        self.support = (np.full(len(self.lines), np.iinfo(np.int32).max) if supports is None
-                        else np.asarray(supports).reshape(len(self.lines), -1)[:, 0])
+        s = np.full(len(self.lines), np.iinfo(np.int32).max) if supports is None else np.asarray(supports)
+        self.support = s[:, 0] if s.ndim == 2 else s.reshape(len(self.lines))  # images per line (LineMap.supports)
         self.corners = None if corners is None or len(corners) == 0 else np.asarray(corners, dtype=float)
         self.edge_line = None if edge_line is None else np.asarray(edge_line, dtype=np.int64)
         self.caster = PlaneRaycaster(self.corners) if self.corners is not None else None

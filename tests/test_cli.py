@@ -29,12 +29,27 @@ def test_map_lift_then_map_eval(synthetic_root, tmp_path, capsys):
     scene = ["--dataset", "synthetic", "--root", str(synthetic_root), "--scene", "room-s3"]
     assert main(["map", *scene, "--out", str(tmp_path / "m"), "--method", "lift"]) == 0
     out = capsys.readouterr().out
-    assert "lines ->" in out and "mapping time:" in out
+    assert "lines ->" in out and "mapping time:" in out and "supports: median" in out
     assert {"linemap.h5", "linemap.ply", "lines2d.h5"} <= {p.name for p in (tmp_path / "m").iterdir()}
+    # the same folder asked for another method: stopped with both settings named, exit 2, nothing touched
+    assert main(["map", *scene, "--out", str(tmp_path / "m"), "--method", "lipmap", "--preset", "quick"]) == 2
+    err = capsys.readouterr().err
+    assert "linemap.h5: was made by linemap with other settings" in err and "method: 'lift' -> 'lipmap'" in err
     assert main(["map-eval", "--linemap", str(tmp_path / "m" / "linemap.h5"), *scene,
                  "--json", str(tmp_path / "m.json")]) == 0
     m = json.loads((tmp_path / "m.json").read_text())
     assert m["n_lines"] > 100 and m["M1"]["line"]["prec@0.05"] > 0.9  # exact synthetic depth
+
+
+def test_map_prints_the_plane_statistics(tmp_path, capsys):
+    from lipmap.datasets.synthetic import SynthConfig, generate_scene
+
+    tiny = SynthConfig("tiny", 160, 120, 131.25, 131.25, 80.0, 60.0, n_mapping=8, n_query=2, texels_per_m=150.0)
+    generate_scene(tmp_path / "d", seed=2, preset=tiny)
+    scene = ["--dataset", "synthetic", "--root", str(tmp_path / "d"), "--scene", "room-s2"]
+    assert main(["map", *scene, "--out", str(tmp_path / "m"), "--preset", "quick"]) == 0
+    out = capsys.readouterr().out
+    assert "plane edges +" in out and "area-weighted median" in out and "depth vs sensor: median" in out
 
 
 def test_map_bad_plane_depth_tol(synthetic_root, tmp_path, capsys):
