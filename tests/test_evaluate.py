@@ -45,3 +45,12 @@ def test_summary_markdown_has_paper_rows():
     md = summary_markdown(res, "7scenes", "posetxt")
     assert "| redkitchen | 1 (0 / 0) | 2.0 / 1.00 / 100.0 | 1.0 / 0.50 / 100.0 | 4.2 / 1.39 / 58.9" in md
     assert "posetxt" in md
+
+
+def test_summary_markdown_reports_fine_thresholds_and_names_its_ground_truth():
+    # 1.5 cm / 0.5 deg: outside 1 cm 1 deg, inside 2 cm 2 deg; the point+line query is inside both.
+    res = {"scenes": {"s": {"point": summarize({"q": (0.015, 0.5)}), "point+line": summarize({"q": (0.005, 0.5)})}}}
+    md = summary_markdown(res, "7scenes", "sfm")
+    assert "| s | 0.0 | 100.0 | 100.0 | 100.0 | 100.0 | 100.0 |" in md
+    assert "pseudo ground truth" in md and "KinectFusion" not in md
+    assert "KinectFusion" in summary_markdown(res, "7scenes", "posetxt")
