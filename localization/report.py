@@ -9,6 +9,9 @@
         OUT/<dataset>/report/cdf_<scene>.png                 cumulative translation / rotation errors
         OUT/<dataset>/report/query_<scene>_<kind><k>.png     query overlays, point-only vs point+line pose
         OUT/<dataset>/report/linemap_<scene>.png, planes_<scene>.png
+        OUT/<dataset>/report.html                            the same, interactive, in ONE self-contained file
+                                                             (localization.report_html): plotly error CDFs and
+                                                             3D views of each map, its planes and the poses
     and adds (or refreshes) a "Plots" block at the end of summary.md.
 
 The query images and cameras come from the dataset (``root``): pass it, or the run's results.json
@@ -36,6 +39,7 @@ LABELS = {"point": "point only", "point+line": "point+line"}
 COLORS = {"point": "#1f77b4", "point+line": "#ff7f0e"}
 T_THRESH_CM, R_THRESH_DEG = 5.0, 5.0
 BEGIN, END = "<!-- lipmap-report:begin -->", "<!-- lipmap-report:end -->"
+HTML_NAME = "report.html"  # OUT/<dataset>/report.html, beside summary.md
 
 
 # ----------------------------------------------------------------------------------------------
@@ -65,6 +69,15 @@ class SceneRun:
         t = [_num(q.get(key, {}).get("t_cm")) for q in self.queries.values()]
         r = [_num(q.get(key, {}).get("R_deg")) for q in self.queries.values()]
         return np.array(t, dtype=float), np.array(r, dtype=float)
+
+
+@dataclass
+class SceneAssets:
+    """What one scene's image figures were made from, kept for the HTML report."""
+
+    linemap: Optional[object] = None  # lipmap.linemap.LineMap
+    scene: Optional[object] = None  # lipmap.scene.Scene, None without the dataset
+    overlays: dict = field(default_factory=dict)  # {query: (kind, rank, overlay PNG)}
 
 
 def _plural(n, one: str, many: str) -> str:
@@ -140,29 +153,48 @@ def select_examples(run: SceneRun, n: int = 3) -> list[tuple[str, int, str]]:
 # ----------------------------------------------------------------------------------------------
 # figures
 # ----------------------------------------------------------------------------------------------
-def _cdf_panel(ax, errs: dict, unit: str, thresh: float, what: str):
+def cdf_range(errs: dict, thresh: float) -> Optional[tuple[float, float]]:
+    """The log x range of an error CDF: from below the smallest positive error (and a tenth of the
+    threshold) to beyond the largest and twice the threshold; None when no query succeeded."""
     finite = np.concatenate([e[np.isfinite(e)] for e in errs.values()])
     if len(finite) == 0:
-        ax.text(0.5, 0.5, "no successful query", ha="center", va="center", transform=ax.transAxes)
-        return
+        return None
     pos = finite[finite > 0]
     # an exact 0 (identical rotation) has no place on a log axis: it is drawn at the left edge
     lo = max(min(pos.min() if len(pos) else thresh, thresh / 10) / 1.6, 1e-3)
     hi = max(finite.max(), thresh * 2) * 1.6
+    return lo, hi
+
+
+def cdf_steps(e: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """Step curve (x, % of ALL queries with a smaller error) from ``lo`` to ``hi``, drawn 'post':
+    failed queries (inf) never reach it, so it ends below 100 %."""
+    n = len(e)
+    x = np.maximum(np.sort(e[np.isfinite(e)]), lo)
+    y = 100.0 * np.arange(1, len(x) + 1) / max(n, 1)
+    return np.concatenate([[lo], x, [hi]]), np.concatenate([[0.0], y, [y[-1] if len(y) else 0.0]])
+
+
+def cdf_label(key: str, e: np.ndarray, unit: str, thresh: float) -> str:
+    """Legend entry of one CDF: median, share within the threshold, failed queries."""
+    n = len(e)
+    med = np.median(e) if n else math.inf
+    within = 100.0 * np.mean(e <= thresh) if n else 0.0
+    fails = int(np.sum(~np.isfinite(e)))
+    label = f"{LABELS[key]}: median {med:.2f} {unit}, {within:.0f}% ≤ {thresh:g} {unit}" if math.isfinite(med) \
+        else f"{LABELS[key]}: median failed, {within:.0f}% ≤ {thresh:g} {unit}"
+    return label + (f", {fails} failed" if fails else "")
+
+
+def _cdf_panel(ax, errs: dict, unit: str, thresh: float, what: str):
+    rng = cdf_range(errs, thresh)
+    if rng is None:
+        ax.text(0.5, 0.5, "no successful query", ha="center", va="center", transform=ax.transAxes)
+        return
+    lo, hi = rng
     for key, e in errs.items():
-        n = len(e)
-        x = np.maximum(np.sort(e[np.isfinite(e)]), lo)
-        y = 100.0 * np.arange(1, len(x) + 1) / max(n, 1)
-        xs = np.concatenate([[lo], x, [hi]])
-        ys = np.concatenate([[0.0], y, [y[-1] if len(y) else 0.0]])
-        med = np.median(e) if n else math.inf
-        within = 100.0 * np.mean(e <= thresh) if n else 0.0
-        fails = int(np.sum(~np.isfinite(e)))
-        label = f"{LABELS[key]}: median {med:.2f} {unit}, {within:.0f}% ≤ {thresh:g} {unit}" if math.isfinite(med) \
-            else f"{LABELS[key]}: median failed, {within:.0f}% ≤ {thresh:g} {unit}"
-        if fails:
-            label += f", {fails} failed"
-        ax.step(xs, ys, where="post", color=COLORS[key], lw=2.2, label=label)
+        xs, ys = cdf_steps(e, lo, hi)
+        ax.step(xs, ys, where="post", color=COLORS[key], lw=2.2, label=cdf_label(key, e, unit, thresh))
     ax.axvline(thresh, color="0.35", ls="--", lw=1.2)
     ax.text(thresh, 50, f"{thresh:g} {unit} ", color="0.25", fontsize=10, rotation=90, ha="right", va="center")
     ax.set_xscale("log")
@@ -372,7 +404,8 @@ def detect_dataset(out_root) -> tuple[Path, str]:
 
 
 def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples: int = 3) -> Path:
-    """Write OUT/<dataset>/report/ (PNGs + report.md) from a finished run; returns report.md.
+    """Write OUT/<dataset>/report/ (PNGs + report.md) and OUT/<dataset>/report.html (one self-contained
+    page with interactive plots and 3D views) from a finished run; returns report.md.
 
     Args:
         out_root: the ``--out`` folder of ``lipmap-loc eval`` (holds ``<dataset>/``).
@@ -396,14 +429,18 @@ def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples:
     md = _overview_md(dataset, out, runs, summaries, n_q, paper)
     bars, md_acc = _accuracy_section(summaries, rep, paper, n_q, list(runs))
     cdfs, md_cdf = _cdf_section(runs, rep, notes)
-    md_q, md_m = _image_sections(out, dataset, all_res, runs, root, rep, n_examples, notes)
+    assets = {}
+    md_q, md_m = _image_sections(out, dataset, all_res, runs, root, rep, n_examples, notes, assets)
     md += md_acc + md_cdf + md_q + md_m
     if notes:
         md += ["## Notes", ""] + [f"- {x}" for x in notes] + [""]
     report = rep / "report.md"
     write_text_atomic(report, "\n".join(md))
     _refresh_summary_links(out / "summary.md", rep, bars, cdfs)
-    logger.info("Report: %s", report)
+    from .report_html import write_report_html
+
+    html = write_report_html(out / HTML_NAME, dataset, out, runs, summaries, n_q, paper, assets, list(notes))
+    logger.info("Report: %s (interactive: %s)", report, html)
     return report
 
 
@@ -417,22 +454,34 @@ def _load_runs(out: Path) -> tuple[dict, dict]:
     return all_res, {n: load_scene_run(out / n) for n in names}
 
 
-def _overview_md(dataset: str, out: Path, runs: dict, summaries: dict, n_q: dict, paper: dict) -> list:
-    """Title, provenance and the per-scene table of ours beside the paper's LiP-Map row."""
-    md = [f"# Localization report ({dataset})", "",
-          f"Made from the artifacts in `{out}` (results.json, per-query journals, line maps); no pose was "
-          "recomputed. Errors: translation = distance between camera centres, rotation = angle of "
-          "R_gt^T R_est; failed queries count as infinitely wrong. Full table: [summary.md](../summary.md).", ""]
-    md += ["| scene | queries | line map | ours point | ours point+line | paper LiP-Map (point+line) |",
-           "|---|---|---|---|---|---|"]
+def overview_rows(runs: dict, summaries: dict, n_q: dict, paper: dict) -> tuple[list, list]:
+    """The per-scene table of ours beside the paper's LiP-Map row: (header, rows of cell strings)."""
+    header = ["scene", "queries", "line map", "ours point", "ours point+line", "paper LiP-Map (point+line)"]
+    rows = []
     for n, r in runs.items():
         s = summaries[n]
         prow = paper["scenes"].get(n.lower())
         pcell = "n/a (not in the paper)" if prow is None else "{:.1f} / {:.2f} / {:.1f}".format(*prow["LiP-Map (point+line)"])
         method = (r.results.get("config") or {}).get("map_method", "?")
-        md.append(f"| {n} | {n_q[n]} | {r.results.get('n_map_lines', '?')} lines ({method}) | {ev.format_summary(s.get('point'))} "
-                  f"| {ev.format_summary(s.get('point+line'))} | {pcell} |")
-    md += ["", "Cells: median translation (cm) / median rotation (deg) / % within 5 cm and 5°.", ""]
+        rows.append([n, str(n_q[n]), f"{r.results.get('n_map_lines', '?')} lines ({method})",
+                     ev.format_summary(s.get("point")), ev.format_summary(s.get("point+line")), pcell])
+    return header, rows
+
+
+OVERVIEW_CELLS = "Cells: median translation (cm) / median rotation (deg) / % within 5 cm and 5°."
+PROVENANCE = ("no pose was recomputed. Errors: translation = distance between camera centres, rotation = angle of "
+              "R_gt^T R_est; failed queries count as infinitely wrong.")
+
+
+def _overview_md(dataset: str, out: Path, runs: dict, summaries: dict, n_q: dict, paper: dict) -> list:
+    """Title, provenance and the per-scene table of ours beside the paper's LiP-Map row."""
+    md = [f"# Localization report ({dataset})", "",
+          f"Made from the artifacts in `{out}` (results.json, per-query journals, line maps); {PROVENANCE} "
+          f"Full table: [summary.md](../summary.md). Interactive 3D views: [{HTML_NAME}](../{HTML_NAME}).", ""]
+    header, rows = overview_rows(runs, summaries, n_q, paper)
+    md += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    md += ["| " + " | ".join(r) + " |" for r in rows]
+    md += ["", OVERVIEW_CELLS, ""]
     return md
 
 
@@ -465,8 +514,9 @@ def _cdf_section(runs: dict, rep: Path, notes: list) -> tuple[dict, list]:
 
 
 def _image_sections(out: Path, dataset: str, all_res: dict, runs: dict, root, rep: Path, n_examples: int,
-                    notes: list) -> tuple[list, list]:
-    """The query-example and line-map sections, made together because both need each scene's line map."""
+                    notes: list, assets: dict) -> tuple[list, list]:
+    """The query-example and line-map sections, made together because both need each scene's line map;
+    ``assets`` gets each scene's :class:`SceneAssets`."""
     md_q = ["## Query examples", "",
             f"For the {n_examples} queries whose translation error improved most with lines, then the "
             f"{n_examples} largest point+line translation errors: the query image with its detected 2D lines "
@@ -481,12 +531,13 @@ def _image_sections(out: Path, dataset: str, all_res: dict, runs: dict, root, re
     for n, r in runs.items():
         lm = _load_linemap_or_note(n, r, notes)
         scene = _load_dataset_scene_or_note(out, dataset, all_res, n, r, root, notes)
+        assets[n] = SceneAssets(lm, scene)
         # the overview render works without the scene
         if lm is not None:
             md_m += _linemap_md(n, r, lm, scene, rep, notes)
         if lm is None or scene is None:
             continue
-        md_q += _query_examples_md(n, r, lm, scene, rep, n_examples, notes)
+        md_q += _query_examples_md(n, r, lm, scene, rep, n_examples, notes, assets[n].overlays)
     return md_q, md_m
 
 
@@ -530,8 +581,10 @@ def _linemap_md(n: str, r: SceneRun, lm, scene, rep: Path, notes: list) -> list:
     return md + [f"![{p.stem}]({p.name})" for p in written] + [""]
 
 
-def _query_examples_md(n: str, r: SceneRun, lm, scene, rep: Path, n_examples: int, notes: list) -> list:
-    """Overlay the scene's example queries; returns its report subsection ([] without examples)."""
+def _query_examples_md(n: str, r: SceneRun, lm, scene, rep: Path, n_examples: int, notes: list,
+                       overlays: dict) -> list:
+    """Overlay the scene's example queries (``overlays`` gets {query: (kind, rank, PNG)}); returns its
+    report subsection ([] without examples)."""
     from lipmap import viz
 
     ex = select_examples(r, n_examples)
@@ -549,6 +602,7 @@ def _query_examples_md(n: str, r: SceneRun, lm, scene, rep: Path, n_examples: in
         p = _overlay_or_note(n, r, q, kind, rank, scene, lm, lq, rep, notes)
         if p is None:
             continue
+        overlays[q] = (kind, rank, p)
         rec = r.queries[q]
         what = "largest improvement" if kind == "improved" else "largest point+line error"
         md.append(f"| {what} #{rank} | `{q}` | {_fmt_err(rec['point'])} | {_fmt_err(rec['point+line'])} "
@@ -575,7 +629,8 @@ def _overlay_or_note(n: str, r: SceneRun, q: str, kind: str, rank: int, scene, l
 
 def _refresh_summary_links(summary: Path, rep: Path, bars: Path, cdfs: dict):
     """Add or replace the plots block at the end of summary.md (nothing else is touched)."""
-    block = [BEGIN, "## Plots", "", "Full visual report: [report/report.md](report/report.md)", "",
+    block = [BEGIN, "## Plots", "", "Full visual report: [report/report.md](report/report.md); interactive, with 3D "
+             f"views of the line maps and poses: [{HTML_NAME}]({HTML_NAME})", "",
              f"![accuracy at 5 cm / 5 deg](report/{bars.name})", ""]
     block += [f"![error distributions of {n}](report/{p.name})" for n, p in cdfs.items()]
     block += ["", END]
@@ -594,7 +649,8 @@ def _refresh_summary_links(summary: Path, rep: Path, bars: Path, cdfs: dict):
 # ----------------------------------------------------------------------------------------------
 def add_report_parser(subparsers):
     """`lipmap-loc report OUT [--dataset D] [--root ROOT] [--examples N]`."""
-    p = subparsers.add_parser("report", help="plots and report.md from a finished eval run (no pose is recomputed)")
+    p = subparsers.add_parser("report", help="plots, report.md and an interactive report.html (3D line maps, planes, "
+                                             "poses) from a finished eval run (no pose is recomputed)")
     p.add_argument("out", type=Path, help="the --out folder of `lipmap-loc eval` (holds <dataset>/results.json)")
     p.add_argument("--dataset", default=None, choices=["7scenes", "synthetic"], help="default: the only dataset under OUT")
     p.add_argument("--root", type=Path, default=None,
@@ -604,7 +660,12 @@ def add_report_parser(subparsers):
     return p
 
 
+def html_report_of(report_md: Path) -> Path:
+    """The ``report.html`` that :func:`write_report` wrote beside the ``report/`` folder of ``report_md``."""
+    return Path(report_md).parent.parent / HTML_NAME
+
+
 def cli_report(args) -> Path:
     path = write_report(args.out, args.dataset, root=args.root, n_examples=args.examples)
-    print(f"report: {path}")
+    print(f"report: {path}\nreport.html: {html_report_of(path)}")
     return path

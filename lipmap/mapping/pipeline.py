@@ -1,4 +1,4 @@
-"""Mapping step: posed RGB-D views -> ``linemap.h5`` (+ ``linemap.ply``, ``planes.ply``), hloc-style.
+"""Mapping step: posed RGB-D views -> ``linemap.h5`` (+ ``linemap.ply``, ``planes.ply``, ``linemap.html``), hloc-style.
 
 ``map_scene(scene, out_dir, conf)`` runs, skipping what its artifacts already hold:
     lines2d.h5      2D lines of the mapping views (LSD, or imported with ``lines_source``)
@@ -282,9 +282,16 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
 
 
 def _render(lm, scene, out_dir: Path) -> None:
+    """PNG renders and ``linemap.html`` (interactive 3D view) beside the map."""
     try:
         from ..viz import render_linemap_views
 
         render_linemap_views(lm, scene, out_dir)
     except Exception as e:  # noqa: BLE001 - a failed picture must not lose the map
         logger.warning("Could not render the line map: %s", e)
+    try:
+        from ..viz3d import save_linemap_html
+
+        save_linemap_html(lm, out_dir / "linemap.html", views=scene.mapping)
+    except Exception as e:  # noqa: BLE001
+        logger.warning("Could not write the 3D view of the line map: %s", e)
