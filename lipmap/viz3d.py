@@ -344,6 +344,8 @@ def linemap_figure(linemap, views=None, corners=None, title: Optional[str] = Non
         plot_cameras(fig, [v.cam_from_world for v in shown], [v.camera for v in shown], label, CAMERA_COLOR, size,
                      width=1.5, hovertext=[v.name for v in shown], group="mapping")
         pts = np.vstack([pts, [v.center for v in views]])
+    if corners is not None and len(corners):  # planes reach beyond the lines (walls): keep them in the box
+        pts = np.vstack([pts, np.asarray(corners, dtype=float).reshape(-1, 3)])
     set_view(fig, pts, up_direction(views or None, pts))
     fig.update_layout(meta={"camera_size": size})
     return fig
