@@ -62,7 +62,7 @@ def init_figure(height: int = 720, title: Optional[str] = None):
     return fig
 
 
-def set_view(fig, points, up=None, elevation_deg: float = 35.0, azimuth_deg: float = 35.0, zoom: float = 1.6,
+def set_view(fig, points, up=None, elevation_deg: float = 35.0, azimuth_deg: float = 35.0, zoom: float = 1.8,
              margin: float = 0.1):
     """Look at ``points`` :math:`(N, 3)` obliquely from above, with ``up`` (default
     :func:`lipmap.viz.up_direction` of the points) as the screen's up, and clip the axes to their
