@@ -69,7 +69,8 @@ def accuracy_figure(summaries: dict, paper: dict):
     fig = go.Figure()
     for key in KEYS:
         fig.add_trace(go.Bar(x=names, y=[(summaries[n].get(key) or {}).get("acc_5cm_5deg") for n in names],
-                             name=f"ours, {LABELS[key]}", marker_color=COLORS[key]))
+                             name=f"ours, {LABELS[key]}", marker_color=COLORS[key], texttemplate="%{y:.0f}",
+                             textposition="outside"))
     greys = np.linspace(0.3, 0.8, max(len(paper["columns"]), 1))
     for c, g in zip(paper["columns"], greys):
         learned = paper["columns"][c]["group"] != "matching-based"
