@@ -131,6 +131,13 @@ def load_scene_run(folder) -> SceneRun:
     return SceneRun(folder.name, folder, results, read_journal_poses(journal), journal)
 
 
+def query_lines_file(run: SceneRun) -> Path:
+    """The queries' 2D lines: ``lines2d_query-<digest>.h5`` as the pipeline names it (the newest when several
+    settings left one each), else the undigested ``lines2d_query.h5`` of older runs."""
+    found = sorted(run.folder.glob("lines2d_query-*.h5"), key=lambda p: p.stat().st_mtime)
+    return found[-1] if found else run.folder / "lines2d_query.h5"
+
+
 def select_examples(run: SceneRun, n: int = 3) -> list[tuple[str, int, str]]:
     """The ``n`` largest translation improvements of point+line over point-only, then the ``n``
     largest point+line translation errors among the rest; only queries with both poses.
@@ -310,7 +317,7 @@ def plot_query_overlay(run: SceneRun, query: str, view, linemap, out_png, line_q
         logger.warning("%s", e)
         img = None
     det = None
-    qlines = run.folder / "lines2d_query.h5"
+    qlines = query_lines_file(run)
     try:
         det = load_lines(qlines, query)
     except InputError as e:

@@ -22,6 +22,9 @@ def test_journal_named_in_results(fake_run):
     assert run.journal.name == f"queries-{LocalizationConfig().digest()}.jsonl"
     np.testing.assert_allclose(run.poses[Q0]["point+line"], fake_run["est"][Q0]["point+line"])
     assert rp.select_examples(run, 3) == [("improved", 1, Q0), ("worst", 1, Q1)]
+    assert rp.query_lines_file(run) == run.folder / "lines2d_query.h5"  # an older run's name
+    (run.folder / "lines2d_query.h5").rename(run.folder / "lines2d_query-0123abcd.h5")  # the pipeline's name
+    assert rp.query_lines_file(run) == run.folder / "lines2d_query-0123abcd.h5"
 
 
 def test_write_report(fake_run):
