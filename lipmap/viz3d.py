@@ -138,7 +138,7 @@ def line_kinds(linemap) -> np.ndarray:
     if method == "lift":
         return np.full(len(linemap), "lift", dtype=object)
     if method == "lipmap" and linemap.planes is not None and "edge_line" in linemap.planes:
-        from .mapping.pipeline import edge_line_mask
+        from .linemap import edge_line_mask
 
         return np.where(edge_line_mask(linemap), "plane edge", "on-plane").astype(object)
     return np.full(len(linemap), "line", dtype=object)

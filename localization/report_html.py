@@ -21,8 +21,8 @@ import numpy as np
 from lipmap import logger
 from lipmap.imageio import write_text_atomic
 
-from .report import (COLORS, KEYS, LABELS, OVERVIEW_CELLS, PROVENANCE, R_THRESH_DEG, T_THRESH_CM, SceneAssets,
-                     SceneRun, _fmt_err, _num, _slug, cdf_label, cdf_range, cdf_steps, overview_rows)
+from .report_run import (COLORS, KEYS, LABELS, OVERVIEW_CELLS, PROVENANCE, R_THRESH_DEG, T_THRESH_CM, SceneAssets,
+                         SceneRun, _num, cdf_label, cdf_range, cdf_steps, fmt_err, overview_rows, slug)
 
 GT_COLOR = "#6a3d9a"
 ERROR_COLORSCALE = [[0.0, "#1a9850"], [0.25, "#a6d96a"], [0.5, "#fee08b"], [0.75, "#f46d43"], [1.0, "#a50026"]]
@@ -176,9 +176,9 @@ def _corners(run: SceneRun, lm):
 
 def _hover(q: str, rec: dict, key: str, has_overlay: bool) -> str:
     r = rec.get(key, {})
-    text = f"<b>{html.escape(q)}</b><br>{LABELS[key]}: {_fmt_err(r)}"
+    text = f"<b>{html.escape(q)}</b><br>{LABELS[key]}: {fmt_err(r)}"
     other = KEYS[1 - KEYS.index(key)]
-    text += f"<br>({LABELS[other]}: {_fmt_err(rec.get(other, {}))})"
+    text += f"<br>({LABELS[other]}: {fmt_err(rec.get(other, {}))})"
     if key == "point+line" and "n_line_inliers" in r:
         text += f"<br>line inliers {r['n_line_inliers']} / {r.get('n_line_matches', '?')} matches"
     if has_overlay:
@@ -188,7 +188,7 @@ def _hover(q: str, rec: dict, key: str, has_overlay: bool) -> str:
 
 def _scene_section(name: str, run: SceneRun, assets: Optional[SceneAssets], out: Path, notes: list) -> str:
     """The 3D view of one scene, its overlay viewer and the table of example queries."""
-    slug = _slug(name)
+    sid = slug(name)
     if assets is None or assets.linemap is None:
         return f"<h3>{html.escape(name)}</h3>\n<p class=\"note\">No line map, so no 3D view (see the notes).</p>\n"
     links = {q: p.relative_to(out).as_posix() if p.is_relative_to(out) else p.as_posix()
@@ -202,8 +202,8 @@ def _scene_section(name: str, run: SceneRun, assets: Optional[SceneAssets], out:
     from lipmap import viz3d
 
     parts = [f"<h3>{html.escape(name)}</h3>",
-             f"<div class=\"plot3d\">{viz3d.figure_div(fig, f'scene3d-{slug}')}</div>",
-             f"<div id=\"scene3d-{slug}-overlay\" style=\"display:none\"><p>Overlay: <a href=\"#\"></a></p>"
+             f"<div class=\"plot3d\">{viz3d.figure_div(fig, f'scene3d-{sid}')}</div>",
+             f"<div id=\"scene3d-{sid}-overlay\" style=\"display:none\"><p>Overlay: <a href=\"#\"></a></p>"
              "<img style=\"max-width:100%\" alt=\"query overlay\"></div>"]
     if assets.overlays:
         rows = []
@@ -211,8 +211,8 @@ def _scene_section(name: str, run: SceneRun, assets: Optional[SceneAssets], out:
             rec = run.queries.get(q, {})
             what = "largest improvement" if kind == "improved" else "largest point+line error"
             rows.append(f"<tr><td>{what} #{rank}</td><td><code>{html.escape(q)}</code></td>"
-                        f"<td>{html.escape(_fmt_err(rec.get('point', {})))}</td>"
-                        f"<td>{html.escape(_fmt_err(rec.get('point+line', {})))}</td>"
+                        f"<td>{html.escape(fmt_err(rec.get('point', {})))}</td>"
+                        f"<td>{html.escape(fmt_err(rec.get('point+line', {})))}</td>"
                         f"<td><a href=\"{html.escape(links[q])}\">{html.escape(Path(links[q]).name)}</a></td></tr>")
         parts.append("<table><tr><th>example</th><th>query</th><th>point only</th><th>point+line</th><th>overlay</th></tr>"
                      + "\n".join(rows) + "</table>")
@@ -251,7 +251,7 @@ def write_report_html(path, dataset: str, out: Path, runs: dict, summaries: dict
             "5 cm / 5°. A curve that ends below 100 % has failed queries.</p>"]
     for n, r in runs.items():
         if r.queries:
-            body += [f"<h3>{html.escape(n)}</h3>", viz3d.figure_div(cdf_figure(r), f"cdf-{_slug(n)}")]
+            body += [f"<h3>{html.escape(n)}</h3>", viz3d.figure_div(cdf_figure(r), f"cdf-{slug(n)}")]
     body += ["<h2>Line maps and poses</h2>",
              "<p class=\"note\">Drag to orbit, scroll to zoom. Buttons: colour the lines by kind (plane edges, lines on "
              "the planes, lines lifted with depth) or by support (number of images that see a line). Legend: click "

@@ -13,7 +13,7 @@ from lipmap.linemap import LineMap
 from lipmap.poses import invert_T, make_T
 from lipmap.testing import rect
 from localization.pipeline import LocalizationConfig
-from localization.report import KEYS
+from localization.report_run import KEYS
 
 W, H, F = 96, 72, 70.0
 Q0, Q1 = "seq-02/frame-000000.color.png", "seq-02/frame-000001.color.png"

@@ -19,6 +19,7 @@ import numpy as np
 from .. import logger
 from ..artifacts import Stamp, reuse, scene_key, variant_dir
 from ..errors import InputError
+from ..linemap import edge_line_mask  # noqa: F401 - its home is the artifact; kept importable from here
 from ..presets import resolve
 from .extract import ExtractConfig, add_tracks, depth_residuals, extract_observations, merge_edges
 
@@ -213,16 +214,6 @@ def _add_on_plane_lines(edges, scene, corners, lines_by_view: dict, conf: Mappin
     # edge lines keep indices 0..n_edge-1, so the planes' edge -> line table stays valid
     return LineMap(np.concatenate([edges.lines, onp.lines]), list(edges.tracks) + list(onp.tracks),
                    np.concatenate([edges.supports, onp.supports]), edges.planes, meta)
-
-
-def edge_line_mask(lm) -> np.ndarray:
-    """(N,) bool: the lines of a ``lipmap`` map that are plane edges (the paper's output); the rest
-    are detections lifted onto the planes (``MappingConfig.on_plane_lines``)."""
-    mask = np.zeros(len(lm), dtype=bool)
-    if lm.planes is not None and "edge_line" in lm.planes:
-        el = np.asarray(lm.planes["edge_line"]).ravel()
-        mask[el[el >= 0]] = True
-    return mask
 
 
 def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=None, overwrite: bool = False,
