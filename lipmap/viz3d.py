@@ -395,7 +395,8 @@ def save_html(fig, path, title: str = "lipmap", intro: str = "") -> Path:
 def save_linemap_html(linemap, path, views=None, corners=None, title: Optional[str] = None) -> Path:
     """``linemap.html``: :func:`linemap_figure` of ``linemap`` as a self-contained page."""
     n = len(linemap)
-    title = title or f"Line map: {n} lines ({linemap.metadata.get('method', '?')}), {linemap.metadata.get('scene', '')}".rstrip(", ")
+    meta = linemap.metadata
+    title = title or f"Line map: {n} lines ({meta.get('method', '?')}), {meta.get('scene', '')}".rstrip(", ")
     fig = linemap_figure(linemap, views, corners)
     intro = ("<p class=\"note\">Drag to orbit, scroll to zoom. The buttons colour the lines by kind or by support "
              "(number of images that see a line); click a legend entry to hide or show it.</p>")

@@ -75,10 +75,11 @@ def accuracy_figure(summaries: dict, paper: dict):
     for c, g in zip(paper["columns"], greys):
         learned = paper["columns"][c]["group"] != "matching-based"
         vals = [(paper["scenes"].get(n.lower()) or {}).get(c, [None] * 3)[2] for n in names]
-        fig.add_trace(go.Bar(x=names, y=vals, name=f"paper: {c}", marker_color=f"rgb({int(255 * g)},{int(255 * g)},{int(255 * g)})",
+        grey = int(255 * g)
+        fig.add_trace(go.Bar(x=names, y=vals, name=f"paper: {c}", marker_color=f"rgb({grey},{grey},{grey})",
                              marker_pattern_shape="/" if learned else ""))
-    fig.update_layout(template="plotly_white", barmode="group", height=420, yaxis=dict(title="queries within 5 cm and 5° (%)",
-                      range=[0, 105]), margin=dict(t=30, b=40), legend=dict(font=dict(size=11)))
+    fig.update_layout(template="plotly_white", barmode="group", height=420, margin=dict(t=30, b=40),
+                      yaxis=dict(title="queries within 5 cm and 5° (%)", range=[0, 105]), legend=dict(font=dict(size=11)))
     return fig
 
 

@@ -141,7 +141,8 @@ def test_report_html_in_chromium(browser, report):
         # a click on a query camera shows its overlay PNG, found on disk through the relative link
         link = page.page.evaluate("() => document.getElementById('scene3d-chess').data[6].customdata.find(c => c)")
         assert link.startswith("report/query_chess_") and (report.parent / link).exists()
-        page.page.evaluate("l => document.getElementById('scene3d-chess').emit('plotly_click', {points: [{customdata: l}]})", link)
+        page.page.evaluate("l => document.getElementById('scene3d-chess')"
+                           ".emit('plotly_click', {points: [{customdata: l}]})", link)
         page.page.wait_for_function("() => { const i = document.querySelector('#scene3d-chess-overlay img');"
                                     " return i.complete && i.naturalWidth > 0; }", timeout=5000)
         assert page.page.is_visible("#scene3d-chess-overlay")
