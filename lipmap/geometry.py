@@ -156,6 +156,17 @@ def project_cam_points(points_cam, camera):
     return xp.stack([u, v], axis=-1), z
 
 
+def unproject_points(uv, depth, camera):
+    """Pixels :math:`(..., 2)` (COLMAP convention) at camera-frame z ``depth`` :math:`(...)` -> camera-frame
+    points :math:`(..., 3)`; the inverse of :func:`project_cam_points`."""
+    uv = _as_float(uv)
+    _check_last(uv, (2,), "uv")
+    fx, fy, cx, cy = _intrinsics(camera, uv)
+    xp = _xp(uv)
+    z = _asarray_like(depth, uv) * xp.ones_like(uv[..., 0])
+    return xp.stack([(uv[..., 0] - cx) / fx * z, (uv[..., 1] - cy) / fy * z, z], axis=-1)
+
+
 def backproject_depth(depth: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame 3D points :math:`(N, 3)` of the valid (> 0) pixels of ``depth`` :math:`(H, W)`, and their
     flat pixel indices :math:`(N,)`; rays through the pixel centres (COLMAP convention)."""

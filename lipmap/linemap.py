@@ -289,6 +289,17 @@ class LineMap:
 # ----------------------------------------------------------------------------------------------
 # helpers
 # ----------------------------------------------------------------------------------------------
+def edge_line_mask(lm: LineMap) -> np.ndarray:
+    """(N,) bool: the lines of a ``lipmap`` map that are plane edges (the paper's output), read from the
+    planes' edge -> line table (``planes["edge_line"]``); the rest are detections lifted onto the planes
+    (``MappingConfig.on_plane_lines``). All False for maps without that table."""
+    mask = np.zeros(len(lm), dtype=bool)
+    if lm.planes is not None and "edge_line" in lm.planes:
+        el = np.asarray(lm.planes["edge_line"]).ravel()
+        mask[el[el >= 0]] = True
+    return mask
+
+
 def _json_default(o):
     if isinstance(o, (np.integer,)):
         return int(o)
@@ -521,5 +532,5 @@ def cli_linemap_export(args):
     return lm
 
 
-__all__ = ["LineMap", "Observation", "write_ply_lines", "read_ply_lines", "add_linemap_export_parser",
-           "cli_linemap_export"]
+__all__ = ["LineMap", "Observation", "edge_line_mask", "write_ply_lines", "read_ply_lines",
+           "add_linemap_export_parser", "cli_linemap_export"]

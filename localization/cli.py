@@ -103,10 +103,10 @@ def cmd_eval(args):
     summary = path.parent / "summary.md"
     print(summary.read_text())
     print(f"results: {path}\nsummary: {summary}")
-    from .report import write_report
+    from .report import html_report_of, write_report
 
     report = write_report(args.out, args.dataset, root=root)
-    print(f"report: {report}")
+    print(f"report: {report}\nreport.html: {html_report_of(report)}")
 
 
 def cmd_map(args):
@@ -146,6 +146,12 @@ def cmd_map(args):
               f"{ps.get('depth_error_median_cm', float('nan')):.1f} cm, {100 * ps.get('depth_error_over_5cm', float('nan')):.0f} % "
               f"of pixels > 5 cm")
     print(f"mapping time: {t.get('total_s', float('nan')):.1f} s ({json.dumps({k: round(v, 1) for k, v in t.items()})})")
+    html = path.with_name("linemap.html")
+    if not html.exists():  # a map reused from before map_scene wrote the 3D view
+        from lipmap.viz3d import save_linemap_html
+
+        save_linemap_html(lm, html, views=scene.mapping)
+    print(f"3D view: {html}")
 
 
 def cmd_map_eval(args):
@@ -251,7 +257,7 @@ def _add_eval_parser(sub):
 
 
 def _add_map_parser(sub):
-    p = sub.add_parser("map", help="build a line map (linemap.h5, linemap.ply, planes.ply)")
+    p = sub.add_parser("map", help="build a line map (linemap.h5, linemap.ply, planes.ply, linemap.html: interactive 3D view)")
     p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True)
     p.add_argument("--root", type=Path, required=True)
     p.add_argument("--scene", required=True)

@@ -9,6 +9,9 @@
         OUT/<dataset>/report/cdf_<scene>.png                 cumulative translation / rotation errors
         OUT/<dataset>/report/query_<scene>_<kind><k>.png     query overlays, point-only vs point+line pose
         OUT/<dataset>/report/linemap_<scene>.png, planes_<scene>.png
+        OUT/<dataset>/report.html                            the same, interactive, in ONE self-contained file
+                                                             (localization.report_html): plotly error CDFs and
+                                                             3D views of each map, its planes and the poses
     and adds (or refreshes) a "Plots" block at the end of summary.md.
 
 The query images and cameras come from the dataset (``root``): pass it, or the run's results.json
@@ -18,9 +21,6 @@ OUT/synthetic-data. Without a dataset root the image-based figures are skipped (
 from __future__ import annotations
 
 import json
-import math
-import re
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
@@ -30,139 +30,27 @@ from lipmap import InputError, logger
 from lipmap.imageio import write_text_atomic
 
 from . import evaluate as ev
+# the run's reading lives in report_run (shared with report.html); its public names stay importable from here
+from .report_run import (COLORS, KEYS, LABELS, OVERVIEW_CELLS, PROVENANCE, R_THRESH_DEG, T_THRESH_CM, SceneAssets,
+                         SceneRun, _num, _plural, cdf_label, cdf_range, cdf_steps, fmt_err, load_scene_run, overview_rows,
+                         query_lines_file, select_examples, slug)
 
-KEYS = ("point", "point+line")
-LABELS = {"point": "point only", "point+line": "point+line"}
-COLORS = {"point": "#1f77b4", "point+line": "#ff7f0e"}
-T_THRESH_CM, R_THRESH_DEG = 5.0, 5.0
 BEGIN, END = "<!-- lipmap-report:begin -->", "<!-- lipmap-report:end -->"
-
-
-# ----------------------------------------------------------------------------------------------
-# reading a run
-# ----------------------------------------------------------------------------------------------
-@dataclass
-class SceneRun:
-    """One scene's artifacts: results.json, the journal's poses, and file locations."""
-
-    name: str
-    folder: Path
-    results: dict
-    poses: dict = field(default_factory=dict)  # {query: {"point": (4, 4) or None, "point+line": ...}}
-    journal: Optional[Path] = None
-
-    @property
-    def queries(self) -> dict:
-        return self.results.get("queries", {})
-
-    @property
-    def map_path(self) -> Path:
-        """The ``linemap.h5`` this run localized with (named in results.json)."""
-        return self.folder / self.results.get("map", {}).get("path", "linemap.h5")
-
-    def errors(self, key: str) -> tuple[np.ndarray, np.ndarray]:
-        """Translation (cm) and rotation (deg) errors of every evaluated query; inf = failed."""
-        t = [_num(q.get(key, {}).get("t_cm")) for q in self.queries.values()]
-        r = [_num(q.get(key, {}).get("R_deg")) for q in self.queries.values()]
-        return np.array(t, dtype=float), np.array(r, dtype=float)
-
-
-def _plural(n, one: str, many: str) -> str:
-    return f"{n} {one if n == 1 else many}"
-
-
-def _num(x) -> float:
-    return math.inf if x is None else float(x)
-
-
-def find_journal(folder: Path, results: dict) -> Optional[Path]:
-    """The journal that produced ``results`` (named in it), else the newest."""
-    if results.get("journal") and (folder / results["journal"]).exists():
-        return folder / results["journal"]
-    found = sorted(folder.glob("queries-*.jsonl"), key=lambda p: p.stat().st_mtime)
-    if found:
-        logger.warning("No journal matches the config in %s; using the newest, %s.", folder / "results.json", found[-1].name)
-        return found[-1]
-    return None
-
-
-def read_journal_poses(path: Optional[Path]) -> dict:
-    """{query: {"point": cam_from_world (4, 4) or None, "point+line": ...}}; later lines win."""
-    out = {}
-    if path is None or not path.exists():
-        return out
-    for line in path.read_text().splitlines():
-        try:
-            rec = json.loads(line)
-            name = rec["name"]
-        except (json.JSONDecodeError, KeyError, TypeError):
-            continue  # a line cut by an interrupted write
-        poses = {}
-        for key in KEYS:
-            T = (rec.get(key) or {}).get("cam_from_world")
-            poses[key] = np.asarray(T, dtype=float) if T is not None and (rec.get(key) or {}).get("success") else None
-        out[name] = poses
-    return out
-
-
-def load_scene_run(folder) -> SceneRun:
-    folder = Path(folder)
-    path = folder / "results.json"
-    if not path.exists():
-        raise InputError("scene results are missing (run `lipmap-loc eval` first)", path)
-    try:
-        results = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise InputError(f"not valid JSON: {e}", path) from None
-    journal = find_journal(folder, results)
-    return SceneRun(folder.name, folder, results, read_journal_poses(journal), journal)
-
-
-def select_examples(run: SceneRun, n: int = 3) -> list[tuple[str, int, str]]:
-    """The ``n`` largest translation improvements of point+line over point-only, then the ``n``
-    largest point+line translation errors among the rest; only queries with both poses.
-
-    Returns:
-        ``[(kind, rank, query)]`` with kind "improved" or "worst", rank from 1.
-    """
-    cand = []
-    for q, rec in run.queries.items():
-        p = run.poses.get(q, {})
-        tp, tl = _num(rec.get("point", {}).get("t_cm")), _num(rec.get("point+line", {}).get("t_cm"))
-        if p.get("point") is not None and p.get("point+line") is not None and math.isfinite(tp) and math.isfinite(tl):
-            cand.append((q, tp, tl))
-    improved = [c for c in sorted(cand, key=lambda c: c[2] - c[1]) if c[1] > c[2]][:n]
-    taken = {c[0] for c in improved}
-    worst = sorted((c for c in cand if c[0] not in taken), key=lambda c: -c[2])[:n]
-    return [("improved", i + 1, c[0]) for i, c in enumerate(improved)] + [("worst", i + 1, c[0]) for i, c in enumerate(worst)]
+HTML_NAME = "report.html"  # OUT/<dataset>/report.html, beside summary.md
 
 
 # ----------------------------------------------------------------------------------------------
 # figures
 # ----------------------------------------------------------------------------------------------
 def _cdf_panel(ax, errs: dict, unit: str, thresh: float, what: str):
-    finite = np.concatenate([e[np.isfinite(e)] for e in errs.values()])
-    if len(finite) == 0:
+    rng = cdf_range(errs, thresh)
+    if rng is None:
         ax.text(0.5, 0.5, "no successful query", ha="center", va="center", transform=ax.transAxes)
         return
-    pos = finite[finite > 0]
-    # an exact 0 (identical rotation) has no place on a log axis: it is drawn at the left edge
-    lo = max(min(pos.min() if len(pos) else thresh, thresh / 10) / 1.6, 1e-3)
-    hi = max(finite.max(), thresh * 2) * 1.6
+    lo, hi = rng
     for key, e in errs.items():
-        n = len(e)
-        x = np.maximum(np.sort(e[np.isfinite(e)]), lo)
-        y = 100.0 * np.arange(1, len(x) + 1) / max(n, 1)
-        xs = np.concatenate([[lo], x, [hi]])
-        ys = np.concatenate([[0.0], y, [y[-1] if len(y) else 0.0]])
-        med = np.median(e) if n else math.inf
-        within = 100.0 * np.mean(e <= thresh) if n else 0.0
-        fails = int(np.sum(~np.isfinite(e)))
-        label = f"{LABELS[key]}: median {med:.2f} {unit}, {within:.0f}% ≤ {thresh:g} {unit}" if math.isfinite(med) \
-            else f"{LABELS[key]}: median failed, {within:.0f}% ≤ {thresh:g} {unit}"
-        if fails:
-            label += f", {fails} failed"
-        ax.step(xs, ys, where="post", color=COLORS[key], lw=2.2, label=label)
+        xs, ys = cdf_steps(e, lo, hi)
+        ax.step(xs, ys, where="post", color=COLORS[key], lw=2.2, label=cdf_label(key, e, unit, thresh))
     ax.axvline(thresh, color="0.35", ls="--", lw=1.2)
     ax.text(thresh, 50, f"{thresh:g} {unit} ", color="0.25", fontsize=10, rotation=90, ha="right", va="center")
     ax.set_xscale("log")
@@ -278,7 +166,7 @@ def plot_query_overlay(run: SceneRun, query: str, view, linemap, out_png, line_q
         logger.warning("%s", e)
         img = None
     det = None
-    qlines = run.folder / "lines2d_query.h5"
+    qlines = query_lines_file(run)
     try:
         det = load_lines(qlines, query)
     except InputError as e:
@@ -344,15 +232,6 @@ def _load_scene(dataset, root, run: SceneRun):
     return load_scene(dataset, root, run.name, pose_source=run.results.get("pose_source", "posetxt"))
 
 
-def _slug(s: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", s)
-
-
-def _fmt_err(r: dict) -> str:
-    t, R = _num(r.get("t_cm")), _num(r.get("R_deg"))
-    return "failed" if not math.isfinite(t) else f"{t:.1f} cm / {R:.2f}°"
-
-
 def detect_dataset(out_root) -> tuple[Path, str]:
     """(out_root, dataset) from ``OUT`` (one dataset folder with results.json) or ``OUT/<dataset>``."""
     out_root = Path(out_root)
@@ -372,7 +251,8 @@ def detect_dataset(out_root) -> tuple[Path, str]:
 
 
 def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples: int = 3) -> Path:
-    """Write OUT/<dataset>/report/ (PNGs + report.md) from a finished run; returns report.md.
+    """Write OUT/<dataset>/report/ (PNGs + report.md) and OUT/<dataset>/report.html (one self-contained
+    page with interactive plots and 3D views) from a finished run; returns report.md.
 
     Args:
         out_root: the ``--out`` folder of ``lipmap-loc eval`` (holds ``<dataset>/``).
@@ -396,14 +276,18 @@ def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples:
     md = _overview_md(dataset, out, runs, summaries, n_q, paper)
     bars, md_acc = _accuracy_section(summaries, rep, paper, n_q, list(runs))
     cdfs, md_cdf = _cdf_section(runs, rep, notes)
-    md_q, md_m = _image_sections(out, dataset, all_res, runs, root, rep, n_examples, notes)
+    assets = {}
+    md_q, md_m = _image_sections(out, dataset, all_res, runs, root, rep, n_examples, notes, assets)
     md += md_acc + md_cdf + md_q + md_m
     if notes:
         md += ["## Notes", ""] + [f"- {x}" for x in notes] + [""]
     report = rep / "report.md"
     write_text_atomic(report, "\n".join(md))
     _refresh_summary_links(out / "summary.md", rep, bars, cdfs)
-    logger.info("Report: %s", report)
+    from .report_html import write_report_html
+
+    html = write_report_html(out / HTML_NAME, dataset, out, runs, summaries, n_q, paper, assets, list(notes))
+    logger.info("Report: %s (interactive: %s)", report, html)
     return report
 
 
@@ -420,19 +304,12 @@ def _load_runs(out: Path) -> tuple[dict, dict]:
 def _overview_md(dataset: str, out: Path, runs: dict, summaries: dict, n_q: dict, paper: dict) -> list:
     """Title, provenance and the per-scene table of ours beside the paper's LiP-Map row."""
     md = [f"# Localization report ({dataset})", "",
-          f"Made from the artifacts in `{out}` (results.json, per-query journals, line maps); no pose was "
-          "recomputed. Errors: translation = distance between camera centres, rotation = angle of "
-          "R_gt^T R_est; failed queries count as infinitely wrong. Full table: [summary.md](../summary.md).", ""]
-    md += ["| scene | queries | line map | ours point | ours point+line | paper LiP-Map (point+line) |",
-           "|---|---|---|---|---|---|"]
-    for n, r in runs.items():
-        s = summaries[n]
-        prow = paper["scenes"].get(n.lower())
-        pcell = "n/a (not in the paper)" if prow is None else "{:.1f} / {:.2f} / {:.1f}".format(*prow["LiP-Map (point+line)"])
-        method = (r.results.get("config") or {}).get("map_method", "?")
-        md.append(f"| {n} | {n_q[n]} | {r.results.get('n_map_lines', '?')} lines ({method}) | {ev.format_summary(s.get('point'))} "
-                  f"| {ev.format_summary(s.get('point+line'))} | {pcell} |")
-    md += ["", "Cells: median translation (cm) / median rotation (deg) / % within 5 cm and 5°.", ""]
+          f"Made from the artifacts in `{out}` (results.json, per-query journals, line maps); {PROVENANCE} "
+          f"Full table: [summary.md](../summary.md). Interactive 3D views: [{HTML_NAME}](../{HTML_NAME}).", ""]
+    header, rows = overview_rows(runs, summaries, n_q, paper)
+    md += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    md += ["| " + " | ".join(r) + " |" for r in rows]
+    md += ["", OVERVIEW_CELLS, ""]
     return md
 
 
@@ -459,14 +336,15 @@ def _cdf_section(runs: dict, rep: Path, notes: list) -> tuple[dict, list]:
         if not r.queries:
             notes.append(f"{n}: no per-query results, no error distribution.")
             continue
-        cdfs[n] = plot_error_cdfs(r, rep / f"cdf_{_slug(n)}.png")
+        cdfs[n] = plot_error_cdfs(r, rep / f"cdf_{slug(n)}.png")
         md += [f"### {n}", "", f"![error distributions of {n}]({cdfs[n].name})", ""]
     return cdfs, md
 
 
 def _image_sections(out: Path, dataset: str, all_res: dict, runs: dict, root, rep: Path, n_examples: int,
-                    notes: list) -> tuple[list, list]:
-    """The query-example and line-map sections, made together because both need each scene's line map."""
+                    notes: list, assets: dict) -> tuple[list, list]:
+    """The query-example and line-map sections, made together because both need each scene's line map;
+    ``assets`` gets each scene's :class:`SceneAssets`."""
     md_q = ["## Query examples", "",
             f"For the {n_examples} queries whose translation error improved most with lines, then the "
             f"{n_examples} largest point+line translation errors: the query image with its detected 2D lines "
@@ -481,12 +359,13 @@ def _image_sections(out: Path, dataset: str, all_res: dict, runs: dict, root, re
     for n, r in runs.items():
         lm = _load_linemap_or_note(n, r, notes)
         scene = _load_dataset_scene_or_note(out, dataset, all_res, n, r, root, notes)
+        assets[n] = SceneAssets(lm, scene)
         # the overview render works without the scene
         if lm is not None:
             md_m += _linemap_md(n, r, lm, scene, rep, notes)
         if lm is None or scene is None:
             continue
-        md_q += _query_examples_md(n, r, lm, scene, rep, n_examples, notes)
+        md_q += _query_examples_md(n, r, lm, scene, rep, n_examples, notes, assets[n].overlays)
     return md_q, md_m
 
 
@@ -519,7 +398,7 @@ def _linemap_md(n: str, r: SceneRun, lm, scene, rep: Path, notes: list) -> list:
     from lipmap import viz
 
     try:
-        written = viz.render_linemap_views(lm, scene, rep, f"linemap_{_slug(n)}.png", f"planes_{_slug(n)}.png",
+        written = viz.render_linemap_views(lm, scene, rep, f"linemap_{slug(n)}.png", f"planes_{slug(n)}.png",
                                            map_dir=r.map_path.parent)
     except Exception as e:  # noqa: BLE001 - one bad render must not lose the report
         logger.warning("Line map render of %s failed: %s", n, e)
@@ -530,8 +409,10 @@ def _linemap_md(n: str, r: SceneRun, lm, scene, rep: Path, notes: list) -> list:
     return md + [f"![{p.stem}]({p.name})" for p in written] + [""]
 
 
-def _query_examples_md(n: str, r: SceneRun, lm, scene, rep: Path, n_examples: int, notes: list) -> list:
-    """Overlay the scene's example queries; returns its report subsection ([] without examples)."""
+def _query_examples_md(n: str, r: SceneRun, lm, scene, rep: Path, n_examples: int, notes: list,
+                       overlays: dict) -> list:
+    """Overlay the scene's example queries (``overlays`` gets {query: (kind, rank, PNG)}); returns its
+    report subsection ([] without examples)."""
     from lipmap import viz
 
     ex = select_examples(r, n_examples)
@@ -549,9 +430,10 @@ def _query_examples_md(n: str, r: SceneRun, lm, scene, rep: Path, n_examples: in
         p = _overlay_or_note(n, r, q, kind, rank, scene, lm, lq, rep, notes)
         if p is None:
             continue
+        overlays[q] = (kind, rank, p)
         rec = r.queries[q]
         what = "largest improvement" if kind == "improved" else "largest point+line error"
-        md.append(f"| {what} #{rank} | `{q}` | {_fmt_err(rec['point'])} | {_fmt_err(rec['point+line'])} "
+        md.append(f"| {what} #{rank} | `{q}` | {fmt_err(rec['point'])} | {fmt_err(rec['point+line'])} "
                   f"| {rec['point+line'].get('n_line_inliers', '-')} |")
         imgs.append(f"![{kind} {rank}: {q}]({p.name})")
     return md + [""] + [x for i in imgs for x in (i, "")]
@@ -566,7 +448,7 @@ def _overlay_or_note(n: str, r: SceneRun, q: str, kind: str, rank: int, scene, l
         notes.append(f"{n}: query {q} is not in the loaded scene; overlay skipped.")
         return None
     try:
-        return plot_query_overlay(r, q, view, lm, rep / f"query_{_slug(n)}_{kind}{rank}.png", lq, kind, rank)
+        return plot_query_overlay(r, q, view, lm, rep / f"query_{slug(n)}_{kind}{rank}.png", lq, kind, rank)
     except Exception as e:  # noqa: BLE001 - one bad overlay must not lose the report
         logger.warning("Overlay of %s failed: %s", q, e)
         notes.append(f"{n}: overlay of {q} failed ({e}).")
@@ -575,7 +457,8 @@ def _overlay_or_note(n: str, r: SceneRun, q: str, kind: str, rank: int, scene, l
 
 def _refresh_summary_links(summary: Path, rep: Path, bars: Path, cdfs: dict):
     """Add or replace the plots block at the end of summary.md (nothing else is touched)."""
-    block = [BEGIN, "## Plots", "", "Full visual report: [report/report.md](report/report.md)", "",
+    block = [BEGIN, "## Plots", "", "Full visual report: [report/report.md](report/report.md); interactive, with 3D "
+             f"views of the line maps and poses: [{HTML_NAME}]({HTML_NAME})", "",
              f"![accuracy at 5 cm / 5 deg](report/{bars.name})", ""]
     block += [f"![error distributions of {n}](report/{p.name})" for n, p in cdfs.items()]
     block += ["", END]
@@ -594,7 +477,8 @@ def _refresh_summary_links(summary: Path, rep: Path, bars: Path, cdfs: dict):
 # ----------------------------------------------------------------------------------------------
 def add_report_parser(subparsers):
     """`lipmap-loc report OUT [--dataset D] [--root ROOT] [--examples N]`."""
-    p = subparsers.add_parser("report", help="plots and report.md from a finished eval run (no pose is recomputed)")
+    p = subparsers.add_parser("report", help="plots, report.md and an interactive report.html (3D line maps, planes, "
+                                             "poses) from a finished eval run (no pose is recomputed)")
     p.add_argument("out", type=Path, help="the --out folder of `lipmap-loc eval` (holds <dataset>/results.json)")
     p.add_argument("--dataset", default=None, choices=["7scenes", "synthetic"], help="default: the only dataset under OUT")
     p.add_argument("--root", type=Path, default=None,
@@ -604,7 +488,12 @@ def add_report_parser(subparsers):
     return p
 
 
+def html_report_of(report_md: Path) -> Path:
+    """The ``report.html`` that :func:`write_report` wrote beside the ``report/`` folder of ``report_md``."""
+    return Path(report_md).parent.parent / HTML_NAME
+
+
 def cli_report(args) -> Path:
     path = write_report(args.out, args.dataset, root=args.root, n_examples=args.examples)
-    print(f"report: {path}")
+    print(f"report: {path}\nreport.html: {html_report_of(path)}")
     return path

@@ -30,7 +30,9 @@ def test_map_lift_then_map_eval(synthetic_root, tmp_path, capsys):
     assert main(["map", *scene, "--out", str(tmp_path / "m"), "--method", "lift"]) == 0
     out = capsys.readouterr().out
     assert "lines ->" in out and "mapping time:" in out and "supports: median" in out
-    assert {"linemap.h5", "linemap.ply", "lines2d.h5"} <= {p.name for p in (tmp_path / "m").iterdir()}
+    assert {"linemap.h5", "linemap.ply", "lines2d.h5", "linemap.html"} <= {p.name for p in (tmp_path / "m").iterdir()}
+    assert out.splitlines()[-1] == f"3D view: {tmp_path / 'm' / 'linemap.html'}"
+    assert "lifted lines (" in (tmp_path / "m" / "linemap.html").read_text()  # the lift map's one kind
     # the same folder asked for another method: stopped with both settings named, exit 2, nothing touched
     assert main(["map", *scene, "--out", str(tmp_path / "m"), "--method", "lipmap", "--preset", "quick"]) == 2
     err = capsys.readouterr().err

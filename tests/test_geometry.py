@@ -52,6 +52,21 @@ class TestProjectPoints:
             G.project_points(np.zeros((3, 2)), np.eye(4), CAM)
 
 
+class TestUnprojectPoints:
+    def test_known_answer(self):
+        # (420, 280) at z = 2: x = (420 - 320) / 500 * 2 = 0.4, y = (280 - 240) / 400 * 2 = 0.2 (fx != fy)
+        np.testing.assert_allclose(G.unproject_points(np.array([[420.0, 280.0]]), 2.0, CAM), [[0.4, 0.2, 2.0]])
+
+    def test_inverts_project_cam_points(self):
+        p = np.array([[0.3, -0.1, 2.0], [1.0, 2.0, 5.0]])
+        uv, z = G.project_cam_points(p, CAM)
+        np.testing.assert_allclose(G.unproject_points(uv, z, CAM), p)
+
+    def test_bad_shape(self):
+        with pytest.raises(InputError):
+            G.unproject_points(np.zeros((3, 3)), 1.0, CAM)
+
+
 class TestProjectSegments:
     def test_clip_partly_behind(self):
         # camera frame: (0,0,2) -> (1,0,-2); near = 1 crosses at t = 0.25 -> (0.25, 0, 1)

@@ -1,4 +1,4 @@
-"""Mapping step: posed RGB-D views -> ``linemap.h5`` (+ ``linemap.ply``, ``planes.ply``), hloc-style.
+"""Mapping step: posed RGB-D views -> ``linemap.h5`` (+ ``linemap.ply``, ``planes.ply``, ``linemap.html``), hloc-style.
 
 ``map_scene(scene, out_dir, conf)`` runs, skipping what its artifacts already hold:
     lines2d.h5      2D lines of the mapping views (LSD, or imported with ``lines_source``)
@@ -19,6 +19,7 @@ import numpy as np
 from .. import logger
 from ..artifacts import Stamp, reuse, scene_key, variant_dir
 from ..errors import InputError
+from ..linemap import edge_line_mask  # noqa: F401 - its home is the artifact; kept importable from here
 from ..presets import resolve
 from .extract import ExtractConfig, add_tracks, depth_residuals, extract_observations, merge_edges
 
@@ -215,16 +216,6 @@ def _add_on_plane_lines(edges, scene, corners, lines_by_view: dict, conf: Mappin
                    np.concatenate([edges.supports, onp.supports]), edges.planes, meta)
 
 
-def edge_line_mask(lm) -> np.ndarray:
-    """(N,) bool: the lines of a ``lipmap`` map that are plane edges (the paper's output); the rest
-    are detections lifted onto the planes (``MappingConfig.on_plane_lines``)."""
-    mask = np.zeros(len(lm), dtype=bool)
-    if lm.planes is not None and "edge_line" in lm.planes:
-        el = np.asarray(lm.planes["edge_line"]).ravel()
-        mask[el[el >= 0]] = True
-    return mask
-
-
 def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=None, overwrite: bool = False,
               checkpoint: Optional[Callable[[str], None]] = None) -> Path:
     """Build the line map of ``scene`` in ``out_dir``; returns the path of ``linemap.h5``.
@@ -282,9 +273,16 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
 
 
 def _render(lm, scene, out_dir: Path) -> None:
+    """PNG renders and ``linemap.html`` (interactive 3D view) beside the map."""
     try:
         from ..viz import render_linemap_views
 
         render_linemap_views(lm, scene, out_dir)
     except Exception as e:  # noqa: BLE001 - a failed picture must not lose the map
         logger.warning("Could not render the line map: %s", e)
+    try:
+        from ..viz3d import save_linemap_html
+
+        save_linemap_html(lm, out_dir / "linemap.html", views=scene.mapping)
+    except Exception as e:  # noqa: BLE001
+        logger.warning("Could not write the 3D view of the line map: %s", e)
