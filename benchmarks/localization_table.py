@@ -101,6 +101,8 @@ def main(argv=None):
                    "summaries": [r["summary"] for r in per_seed]}
         n_q = len(per_seed[0]["queries"])
         map_cell = f"{args.method} `{args.preset}`" if args.method == "lipmap" else args.method
+        if args.line_query != "projection":
+            map_cell += f" ({args.line_query} query)"
         first = not rows
         rows.append([(args.label or f"{args.scene} ({n_q} queries)") if first else "", args.pose_source if first else "",
                      f"{map_cell}, {per_seed[0]['map']['n_lines']} lines" if first else "",
