@@ -131,7 +131,9 @@ def summary_markdown(results: dict, dataset: str, pose_source: str, notes: list[
     lines.append("")
     lines.append("Paper numbers use the full 7-Scenes test sequences with SuperPoint+SuperGlue (hloc) points; "
                  "n/a: the scene is not in the paper's table (e.g. synthetic or a cut-down scene).")
-    lines += ["", accuracy_markdown(results), "", GROUND_TRUTH_NOTE.get(pose_source, f"Ground truth: `{pose_source}`.")]
+    gt_note = ("Ground truth: the generator's exact poses." if dataset == "synthetic"
+               else GROUND_TRUTH_NOTE.get(pose_source, f"Ground truth: `{pose_source}`."))
+    lines += ["", accuracy_markdown(results), "", gt_note]
     for n in notes or []:
         lines.append(f"- {n}")
     return "\n".join(lines) + "\n"

@@ -54,3 +54,4 @@ def test_summary_markdown_reports_fine_thresholds_and_names_its_ground_truth():
     assert "| s | 0.0 | 100.0 | 100.0 | 100.0 | 100.0 | 100.0 |" in md
     assert "pseudo ground truth" in md and "KinectFusion" not in md
     assert "KinectFusion" in summary_markdown(res, "7scenes", "posetxt")
+    assert "exact poses" in summary_markdown(res, "synthetic", "posetxt")
