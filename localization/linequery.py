@@ -37,6 +37,7 @@ class LineQueryConfig:
     occlusion_tol: float = 0.05  # m, projection method's visibility test against the planes
     min_support: int = 1  # map lines seen in fewer mapping images are not queried (1: all)
     one_to_one: bool = True  # a map line matches at most one query line (its best), as a point matches one keypoint
+    min_margin: float = 6.0  # projection: drop a query line whose runner-up map line scores within this of its best (0: off)
 
 
 class LineQuery:
@@ -149,8 +150,14 @@ class LineQuery:
         ang = np.arccos(np.clip(cos[qi, pj], -1.0, 1.0))
         score = dist + 10 * np.degrees(ang) / max(conf.max_angle_deg, 1e-9)
         order = np.lexsort((score, qi))  # best candidate first within each query line
-        qi, pj = qi[order], pj[order]
+        qi, pj, score = qi[order], pj[order], score[order]
         first = np.r_[True, qi[1:] != qi[:-1]] if len(qi) else np.zeros(0, bool)
+        if conf.min_margin > 0 and len(qi):
+            # a runner-up about as good as the best makes the query line ambiguous (parallel edges a few px apart)
+            nxt = np.r_[score[1:], np.inf]
+            has_next = np.r_[qi[1:] == qi[:-1], False]
+            ok = ~has_next | (nxt - score >= conf.min_margin)
+            first &= ok
         return qi[first], vis[pj[first]]
 
     def _verify(self, lines2d, cand_q, cand_l, T, camera, conf):

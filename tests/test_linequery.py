@@ -85,3 +85,19 @@ def test_one_to_one_keeps_the_best_query_line_of_each_map_line():
     assert sorted(lq.match(both, T, SMALL_CAMERA, conf)["query_idx"]) == [0, 1]
     m = lq.match(both, T, SMALL_CAMERA, LineQueryConfig(method="projection", max_dist_px=4, one_to_one=True))
     assert m["query_idx"].tolist() == [1] and m["line_idx"].tolist() == [0]  # the exact one wins
+
+
+def test_min_margin_drops_query_lines_with_an_equally_good_runner_up():
+    corners, views, lines, edge_line = _map()
+    T = views[1].cam_from_world
+    q = _query_lines(lines[:1], T)
+    # a second map line parallel to line 0 and a few mm beside it: its projection lies ~1-2 px from the first
+    shift = 0.004 * np.cross(lines[0, 1] - lines[0, 0], T[2, :3])
+    shift /= max(np.linalg.norm(shift), 1e-12) / 0.004
+    twin = np.concatenate([lines, (lines[:1] + shift)])
+    conf = LineQueryConfig(method="projection", max_dist_px=4, min_margin=0.0)
+    lq = LineQuery(twin, corners, edge_line)
+    assert lq.match(q, T, SMALL_CAMERA, conf)["query_idx"].tolist() == [0]  # the nearer twin wins
+    assert len(lq.match(q, T, SMALL_CAMERA, LineQueryConfig(method="projection", max_dist_px=4, min_margin=6.0))["query_idx"]) == 0
+    alone = LineQuery(lines, corners, edge_line)  # without the twin, the runner-up (if any) is far: kept
+    assert alone.match(q, T, SMALL_CAMERA, LineQueryConfig(method="projection", max_dist_px=4, min_margin=6.0))["line_idx"].tolist() == [0]

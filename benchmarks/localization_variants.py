@@ -1,0 +1,113 @@
+"""What each localization setting is worth: named overrides of ``LocalizationConfig``, side by side, on one scene.
+
+    python benchmarks/localization_variants.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
+        --scene redkitchen --out OUT [--method lipmap|lift] [--pose-source posetxt|sfm] [--matches 10] \
+        [--match-seeds 0,1,2,3,4] 'default={}' 'margin0={"line_query": {"min_margin": 0}}' ...
+
+The map, point map and query lines come from a ``lipmap-loc eval`` run into OUT with the default settings (built
+there when missing). Each variant then localizes every query in memory, without journals, for every draw of the
+point budget, and the figures pool the draws (as ``localization_table.py``). Overrides are JSON objects of
+``LocalizationConfig`` fields; ``line_query`` and ``point_line_pose`` take dicts of their own fields. Prints a
+table and writes ``benchmarks/results/localization-variants-<dataset>-<scene>-<method>-<pose source>-<N>.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from lipmap.datasets import load_scene
+from lipmap.lines2d import load_lines
+from lipmap.poses import pose_errors
+from localization.linequery import LineQuery
+from localization.pipeline import BuiltinPoints, LocalizationConfig, _map, _query_lines, localize_query
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import results  # noqa: E402
+
+HEADER = ["variant", "overrides", "point-only: median cm / % at 1, 2, 5 cm", "point+line: same",
+          "line matches / correct (precision)", "line stage ms"]
+
+
+def variant_config(base: LocalizationConfig, over: dict) -> LocalizationConfig:
+    over = dict(over)
+    lq, pl = over.pop("line_query", {}), over.pop("point_line_pose", {})
+    if "line_gates" in over:
+        over["line_gates"] = tuple(tuple(float(x) for x in g) for g in over["line_gates"])
+    return replace(base, **over, line_query=replace(base.line_query, **lq),
+                   point_line_pose=replace(base.point_line_pose, **pl))
+
+
+def _cell(t: np.ndarray) -> str:
+    med = np.median(t)
+    acc = " / ".join(f"{100 * np.mean(t <= c):.0f}" for c in (1.0, 2.0, 5.0))
+    return f"{med:.2f} / {acc}" if np.isfinite(med) else f"failed / {acc}"
+
+
+def run_variant(scene, points, lq, lines, conf: LocalizationConfig, seeds) -> dict:
+    t = {"point": [], "point+line": []}
+    ms, n_m, n_ok = [], 0, 0
+    for seed in seeds:
+        c = replace(conf, match_seed=seed)
+        for v in scene.query:
+            rec = localize_query(v.name, v.camera, points, lines[v.name], lq, c, cam_from_world_gt=v.cam_from_world)
+            for key in t:
+                T = rec[key].get("cam_from_world")
+                t[key].append(pose_errors(v.cam_from_world, np.array(T))[0] * 100 if T else np.inf)
+            pl = rec["point+line"]
+            if "line_stage_ms" in pl:
+                ms.append(pl["line_stage_ms"])
+            n_m += pl.get("n_line_matches", 0)
+            n_ok += pl.get("n_line_matches_correct", 0)
+    return {"t_cm": {k: np.asarray(x) for k, x in t.items()}, "line_ms": float(np.median(ms)) if ms else None,
+            "line_matches": n_m, "line_matches_correct": n_ok}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dataset", required=True, choices=["7scenes", "synthetic"])
+    ap.add_argument("--root", type=Path, required=True)
+    ap.add_argument("--scene", required=True)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--method", default=LocalizationConfig().map_method)
+    ap.add_argument("--pose-source", default="posetxt")
+    ap.add_argument("--matches", type=int, default=10, help="point matches per query (0: all)")
+    ap.add_argument("--match-seeds", default="0,1,2,3,4")
+    ap.add_argument("variants", nargs="+", help="NAME=JSON overrides of LocalizationConfig ('{}' for the defaults)")
+    args = ap.parse_args(argv)
+
+    scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source)
+    scene_dir = args.out / args.dataset / args.scene
+    base = LocalizationConfig(max_point_matches=args.matches or None, map_method=args.method)
+    points = BuiltinPoints(scene, scene_dir, base)
+    qlines = _query_lines(scene, scene_dir, base, False)
+    linemap, _ = _map(scene, scene_dir, base, None, False, lambda event: None)
+    lq = LineQuery.from_linemap(linemap)
+    lines = {v.name: load_lines(qlines, v.name) for v in scene.query}
+    seeds = [int(s) for s in args.match_seeds.split(",")] if args.matches else [0]
+
+    rows, out = [], {}
+    for spec in args.variants:
+        name, _, js = spec.partition("=")
+        over = json.loads(js or "{}")
+        r = run_variant(scene, points, lq, lines, variant_config(base, over), seeds)
+        prec = r["line_matches_correct"] / max(r["line_matches"], 1)
+        n_loc = len(r["t_cm"]["point"])
+        rows.append([name, f"`{json.dumps(over)}`" if over else "defaults", _cell(r["t_cm"]["point"]),
+                     _cell(r["t_cm"]["point+line"]), f"{r['line_matches'] / n_loc:.0f} / {100 * prec:.0f} %",
+                     f"{r['line_ms']:.0f}" if r["line_ms"] is not None else ""])
+        out[name] = {"overrides": over, "median_t_cm": {k: float(np.median(x)) for k, x in r["t_cm"].items()},
+                     "line_matches_per_query": r["line_matches"] / n_loc, "line_match_precision": prec,
+                     "median_ms_line_stage": r["line_ms"]}
+        print("| " + " | ".join(map(str, rows[-1])) + " |", flush=True)
+    name = f"localization-variants-{args.dataset}-{args.scene}-{args.method}-{args.pose_source}-{args.matches or 'all'}"
+    results.write(name, {"scene": args.scene, "dataset": args.dataset, "method": args.method, "matches": args.matches,
+                         "match_seeds": seeds, "variants": out, "table": {"header": HEADER, "rows": rows}})
+
+
+if __name__ == "__main__":
+    main()
