@@ -14,7 +14,6 @@ Prints a markdown table and writes it with the per-run summaries to
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from dataclasses import replace
@@ -71,11 +70,7 @@ def cell(s: dict) -> str:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dataset", required=True, choices=["7scenes", "synthetic"])
-    ap.add_argument("--root", type=Path, required=True)
-    ap.add_argument("--scene", required=True)
-    ap.add_argument("--out", type=Path, required=True)
+    ap = results.scene_parser(__doc__)
     ap.add_argument("--matches", default="all,10", help="comma separated point-match budgets per query ('all' = no limit)")
     ap.add_argument("--match-seeds", default="0,1,2,3,4", help="draws of each finite budget, pooled")
     ap.add_argument("--method", default=LocalizationConfig().map_method)

@@ -12,7 +12,6 @@ table and writes ``benchmarks/results/localization-variants-<dataset>-<scene>-<m
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from dataclasses import replace
@@ -68,11 +67,7 @@ def run_variant(scene, points, lq, lines, conf: LocalizationConfig, seeds) -> di
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dataset", required=True, choices=["7scenes", "synthetic"])
-    ap.add_argument("--root", type=Path, required=True)
-    ap.add_argument("--scene", required=True)
-    ap.add_argument("--out", type=Path, required=True)
+    ap = results.scene_parser(__doc__)
     ap.add_argument("--method", default=LocalizationConfig().map_method)
     ap.add_argument("--pose-source", default="posetxt")
     ap.add_argument("--matches", type=int, default=10, help="point matches per query (0: all)")

@@ -13,7 +13,6 @@ same planes (OUT/lipmap-tol<value>, reusing OUT/lipmap's planes.h5 and lines2d.h
 """
 from __future__ import annotations
 
-import argparse
 import shutil
 import sys
 from pathlib import Path
@@ -53,11 +52,7 @@ def row(label: str, name: str, lm: LineMap, gt, seconds) -> tuple[list, dict]:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dataset", required=True, choices=["7scenes", "synthetic"])
-    ap.add_argument("--root", type=Path, required=True)
-    ap.add_argument("--scene", required=True)
-    ap.add_argument("--out", type=Path, required=True)
+    ap = results.scene_parser(__doc__)
     ap.add_argument("--preset", default="fast", help="mapping preset of the lipmap run")
     ap.add_argument("--methods", default="lipmap,lift")
     ap.add_argument("--plane-depth-tols", default="", help="extra lipmap rows, comma separated metres")

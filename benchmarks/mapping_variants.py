@@ -11,7 +11,6 @@ plane count and depth error) and writes it to ``benchmarks/results/mapping-varia
 """
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import sys
@@ -50,11 +49,7 @@ def _metrics(lm, gt) -> dict:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dataset", required=True, choices=["7scenes", "synthetic"])
-    ap.add_argument("--root", type=Path, required=True)
-    ap.add_argument("--scene", required=True)
-    ap.add_argument("--out", type=Path, required=True)
+    ap = results.scene_parser(__doc__)
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--base", default=None, help="the variant whose planes extraction-only variants reuse")
     ap.add_argument("variants", nargs="+", help="NAME=JSON overrides of the preset ('{}' for the preset itself)")

@@ -4,6 +4,7 @@ tables are generated from these files by ``benchmarks/readme_tables.py``.
 """
 from __future__ import annotations
 
+import argparse
 import datetime
 import json
 import os
@@ -15,6 +16,16 @@ from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
 REPO = RESULTS.parents[1]
+
+
+def scene_parser(doc: str) -> argparse.ArgumentParser:
+    """The arguments of every per-scene benchmark: the dataset, its root, the scene and the output folder."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dataset", required=True, choices=["7scenes", "synthetic"])
+    ap.add_argument("--root", type=Path, required=True)
+    ap.add_argument("--scene", required=True)
+    ap.add_argument("--out", type=Path, required=True)
+    return ap
 
 
 def _git(*args) -> str:
