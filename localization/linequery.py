@@ -40,6 +40,12 @@ class LineQueryConfig:
     min_margin: float = 6.0  # projection: drop a query line whose runner-up map line scores within this of its best (0: off)
 
 
+def match_score(dist_px: np.ndarray, angle_rad: np.ndarray, conf: LineQueryConfig) -> np.ndarray:
+    """Lower is better: the distance in px plus the angle as a share of the gate's, weighted so that a line at
+    the angle gate scores like one 10 px off (the ranking of candidates and the ``min_margin`` test use it)."""
+    return dist_px + 10 * np.degrees(angle_rad) / max(conf.max_angle_deg, 1e-9)
+
+
 class LineQuery:
     """Holds a line map's lines, planes and raycaster; ``match`` answers one query."""
 
@@ -148,7 +154,7 @@ class LineQuery:
         ok = ov >= conf.min_overlap
         qi, pj, dist = qi[ok], pj[ok], dist[ok]
         ang = np.arccos(np.clip(cos[qi, pj], -1.0, 1.0))
-        score = dist + 10 * np.degrees(ang) / max(conf.max_angle_deg, 1e-9)
+        score = match_score(dist, ang, conf)
         order = np.lexsort((score, qi))  # best candidate first within each query line
         qi, pj, score = qi[order], pj[order], score[order]
         first = np.r_[True, qi[1:] != qi[:-1]] if len(qi) else np.zeros(0, bool)
@@ -170,7 +176,7 @@ class LineQuery:
             dist = geo.perpendicular_distance(qs, proj, "max")
         ok = valid & (ang <= np.radians(conf.max_angle_deg)) & (dist <= conf.max_dist_px)
         if conf.one_to_one and ok.any():
-            score = np.where(ok, dist + 10 * np.degrees(ang) / max(conf.max_angle_deg, 1e-9), np.inf)
+            score = np.where(ok, match_score(dist, ang, conf), np.inf)
             order = np.lexsort((score, cand_l))  # best query line first for each map line
             first = np.r_[True, cand_l[order][1:] != cand_l[order][:-1]]
             keep = np.zeros_like(ok)
