@@ -23,7 +23,7 @@ from lipmap.datasets import load_scene
 from lipmap.lines2d import load_lines
 from lipmap.poses import pose_errors
 from localization.linequery import LineQuery
-from localization.pipeline import BuiltinPoints, LocalizationConfig, _map, _query_lines, localize_query
+from localization.pipeline import BuiltinPoints, LocalizationConfig, localize_query, query_lines_file, scene_linemap
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import results  # noqa: E402
@@ -79,8 +79,8 @@ def main(argv=None):
     scene_dir = args.out / args.dataset / args.scene
     base = LocalizationConfig(max_point_matches=args.matches or None, map_method=args.method)
     points = BuiltinPoints(scene, scene_dir, base)
-    qlines = _query_lines(scene, scene_dir, base, False)
-    linemap, _ = _map(scene, scene_dir, base, None, False, lambda event: None)
+    qlines = query_lines_file(scene, scene_dir, base)
+    linemap, _ = scene_linemap(scene, scene_dir, base)
     lq = LineQuery.from_linemap(linemap)
     lines = {v.name: load_lines(qlines, v.name) for v in scene.query}
     seeds = [int(s) for s in args.match_seeds.split(",")] if args.matches else [0]

@@ -241,12 +241,12 @@ def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, line
     all_queries = list(scene.query)
     scene, bad_queries = check_scene(scene, skip_bad_frames)
     t0 = time.time()
-    linemap, map_info = _map(scene, out_dir, conf, lines_source, overwrite, checkpoint)
+    linemap, map_info = scene_linemap(scene, out_dir, conf, lines_source, overwrite, checkpoint)
     t_map = time.time() - t0
     checkpoint("mapped")
     lq = _line_query(linemap, conf, map_info)
     points = HlocPoints(Path(hloc_dir) / scene.name) if hloc_dir else BuiltinPoints(scene, out_dir, conf, overwrite)
-    qlines_h5 = _query_lines(scene, out_dir, conf, overwrite)
+    qlines_h5 = query_lines_file(scene, out_dir, conf, overwrite)
     journal_path = out_dir / f"queries-{_journal_digest(scene, conf, map_info, points, qlines_h5)}.jsonl"
     done = _resume(journal_path, scene, bad_queries, overwrite)
     _localize_all(scene, points, qlines_h5, lq, conf, journal_path, done, checkpoint)
@@ -265,8 +265,9 @@ def _rel(path: Path, base: Path) -> str:
         return str(path)
 
 
-def _map(scene, out_dir: Path, conf: LocalizationConfig, lines_source, overwrite, checkpoint):
-    """The line map of this configuration, built or reused in its own variant folder."""
+def scene_linemap(scene, out_dir: Path, conf: LocalizationConfig, lines_source=None, overwrite: bool = False,
+                  checkpoint: Optional[Callable[[str], None]] = None):
+    """The line map of this configuration, built or reused in its own variant folder; returns (LineMap, info)."""
     from lipmap.linemap import LineMap
     from lipmap.mapping.pipeline import get_conf as map_conf
     from lipmap.mapping.pipeline import map_scene, map_variant_dir, mapping_stamp
@@ -292,7 +293,7 @@ def _line_query(linemap, conf: LocalizationConfig, map_info: dict) -> LineQuery:
     return lq
 
 
-def _query_lines(scene, out_dir: Path, conf: LocalizationConfig, overwrite) -> Path:
+def query_lines_file(scene, out_dir: Path, conf: LocalizationConfig, overwrite: bool = False) -> Path:
     """2D lines of the queries, with the mapping's detector, in a file named by the detector's settings."""
     from lipmap.lines2d import detect_lines, get_conf as lines_conf, lines_stamp
     from lipmap.mapping.pipeline import get_conf as map_conf
