@@ -22,6 +22,7 @@ from ..errors import InputError
 from ..linemap import edge_line_mask  # noqa: F401 - its home is the artifact; kept importable from here
 from ..presets import resolve
 from .extract import ExtractConfig, add_tracks, depth_residuals, extract_observations, merge_edges
+from .keyframes import KeyframeConfig, keyframe_views
 
 
 @dataclass
@@ -44,6 +45,7 @@ class MappingConfig:
     # 3 px / 0.03 rad: "fast" trains at half resolution, where the paper's 1 px is half a training pixel
     extract: ExtractConfig = field(default_factory=lambda: ExtractConfig(max_dist=3.0, max_angle=0.03))
     lift: str = "lift-merge-loose"  # lipmap.lift preset: method "lift", and the on-plane lines of "lipmap"
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)  # the views a map is built from
     seed: int = 0
 
 
@@ -225,6 +227,10 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
     keeps several variants maps each into :func:`map_variant_dir`). ``checkpoint(event)`` is called after
     each artifact is written (``"lines2d"``, ``"planes"``, ``"linemap"``): progress, or fault injection in tests.
     """
+    from dataclasses import replace
+
+    from ..frames import depth_maps
+
     conf = get_conf(conf)
     if method not in METHODS:
         raise InputError(f"unknown mapping method {method!r}; choose one of {', '.join(METHODS)}")
@@ -237,6 +243,8 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
     checkpoint = checkpoint or (lambda event: None)
     t0 = time.time()
     timings = {}
+    n_views = len(scene.mapping)
+    scene = replace(scene, mapping=keyframe_views(scene.mapping, conf.keyframes))
     lines_h5 = detect_or_import_lines(scene.mapping, out_dir, conf, lines_source, overwrite)
     timings["lines2d_s"] = time.time() - t0
     checkpoint("lines2d")
@@ -253,7 +261,7 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
         timings["optimize_s"] = time.time() - t
         checkpoint("planes")
         t = time.time()
-        depth = {v.name: v.load_depth() for v in scene.mapping if v.depth_path is not None}
+        depth = depth_maps(scene.mapping)  # read as needed: memory bounded
         lm = lipmap_linemap(scene, planes, lines_by_view, conf, depth)
         timings["extract_s"] = time.time() - t
         from ..planes.check import plane_stats
@@ -261,7 +269,8 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
         lm.metadata["plane_stats"] = plane_stats(planes, scene.mapping)
     timings["total_s"] = time.time() - t0
     lm.metadata.update({"scene": scene.name, "dataset": scene.dataset, "pose_source": scene.pose_source,
-                        "timings": timings, "method": method, "preset": conf.preset})
+                        "timings": timings, "method": method, "preset": conf.preset,
+                        "keyframes": {"n_views": n_views, "n_keyframes": len(scene.mapping), **asdict(conf.keyframes)}})
     lm.save(out, stamp=stamp)
     lm.to_ply(out_dir / "linemap.ply")
     _render(lm, scene, out_dir)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..frames import DEFAULT_CAPACITY, LRU
 from .assign import best_edges, first_hit_torch, line_regions, pixel_rays_world
 from .losses import line_loss
 
@@ -45,18 +46,18 @@ class LineSupervision:
         self.robust_scale = robust_scale
         self.max_assign_frac = max_assign_frac
         self.euc_inside_only = euc_inside_only
-        self._regions = {}
+        self._regions = LRU(self._make_regions, DEFAULT_CAPACITY)  # bounded: scenes have thousands of views
         self.last = {}
 
     def regions(self, view, camera):
         """Region pixels :math:`(P, 2)` (col, row) and their line :math:`(P,)` of ``view``'s lines on the grid of
         ``camera`` (the training resolution): the full-resolution segments are scaled to it first (exact in
         COLMAP's pixel convention)."""
-        key = (view.name, camera.width, camera.height)
-        if key not in self._regions:
-            s = camera.width / view.camera.width
-            self._regions[key] = line_regions(self.lines[view.name] * s, camera.width, camera.height)
-        return self._regions[key]
+        return self._regions((view.name, view.camera.width, camera.width, camera.height))
+
+    def _make_regions(self, key):
+        name, full_width, width, height = key
+        return line_regions(self.lines[name] * (width / full_width), width, height)
 
     def settings(self) -> dict:
         """What shapes the loss, for the planes' artifact stamp."""

@@ -74,52 +74,92 @@ def downscale_frames(frames: list, downscale: int, target_width: int = 160) -> l
     return out
 
 
+def _load_frame(v, downscale: int = 1, target_width: int = 160) -> Optional[DepthFrame]:
+    """The :class:`DepthFrame` of one view at 1 / downscale (0 = auto), or None without depth or pose."""
+    if v.depth_path is None or v.cam_from_world is None:
+        return None
+    depth = v.load_depth()
+    cam = v.camera
+    ds = downscale or auto_downscale(cam.width, target_width)
+    if ds > 1:
+        cam = cam.scaled(1.0 / ds)
+        depth = resize_nearest(depth, cam.width, cam.height)
+    return DepthFrame(v, cam, np.asarray(v.cam_from_world, dtype=np.float64), depth.astype(np.float32))
+
+
 def depth_frames(views, downscale: int = 1) -> list:
-    """One :class:`DepthFrame` per view that has a pose and a depth map.
+    """One :class:`DepthFrame` per view that has a pose and a depth map, all loaded now.
 
     Depth is the registered depth (colour camera), resized by nearest sampling to 1 / downscale.
-    Views without depth or pose are skipped with a warning.
+    Views without depth or pose are skipped with a warning. :class:`LazyDepthFrames` is the same
+    sequence loaded on access, for scenes whose depth does not fit in memory.
     """
     frames = []
     for v in views:
-        if v.depth_path is None or v.cam_from_world is None:
+        f = _load_frame(v, max(downscale, 1))
+        if f is None:
             logger.warning("view %s has no depth or no pose; skipped", v.name)
             continue
-        depth = v.load_depth()
-        cam = v.camera
-        if downscale > 1:
-            cam = cam.scaled(1.0 / downscale)
-            depth = resize_nearest(depth, cam.width, cam.height)
-        frames.append(DepthFrame(v, cam, np.asarray(v.cam_from_world, dtype=np.float64), depth.astype(np.float32)))
+        frames.append(f)
     return frames
 
 
+class LazyDepthFrames:
+    """The :class:`DepthFrame` sequence of ``views`` (those with depth and a pose), each loaded when accessed
+    and not kept: memory stays that of one frame whatever the number of views."""
+
+    def __init__(self, views, downscale: int = 1, target_width: int = 160):
+        self.views = [v for v in views if v.depth_path is not None and v.cam_from_world is not None]
+        self.downscale, self.target_width = downscale, target_width
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    def __getitem__(self, i: int) -> DepthFrame:
+        return _load_frame(self.views[i], self.downscale, self.target_width)
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+
 def fuse_tsdf(frames, conf: PlaneInitConfig, device=None) -> tuple[np.ndarray, np.ndarray]:
-    """Fuse depth frames (see :func:`depth_frames`) into a TSDF and extract its zero surface.
+    """Fuse depth frames (a sequence of :class:`DepthFrame`, e.g. :func:`depth_frames` or :class:`LazyDepthFrames`)
+    into a TSDF and extract its zero surface.
+
+    Memory is bounded by ``conf.max_voxels`` (the grid) and one frame; each frame updates only the voxels of
+    its view frustum's bounding box, so time grows with the frames' frusta, not frames x grid.
 
     Returns:
         **vertices** :math:`(V, 3)` world metres and **faces** :math:`(F, 3)` int64.
     """
     device = torch.device(device or "cpu")
-    frames, pts = _frames_with_depth(frames, conf)
-    if not frames:
+    used, pts = _bounds_sample(frames, conf)
+    if not used:
         raise InputError("no view has valid depth and a pose: cannot fuse depth")
     lo, voxel, trunc, dims = _tsdf_volume(np.concatenate(pts), conf)
-    logger.info("plane init: TSDF %s voxels of %.3f m over %d views", "x".join(map(str, dims)), voxel, len(frames))
-    tsdf, weight = _integrate_tsdf(frames, lo, voxel, trunc, dims, device)
+    logger.info("plane init: TSDF %s voxels of %.3f m over %d views", "x".join(map(str, dims)), voxel, len(used))
+    tsdf, weight = _integrate_tsdf((frames[i] for i in used), conf, lo, voxel, trunc, dims, device)
     return _tsdf_surface(tsdf, weight, dims, voxel, lo)
 
 
-def _frames_with_depth(frames, conf: PlaneInitConfig) -> tuple[list, list]:
-    """(camera, pose, depth) of the frames with usable depth (others dropped) and a subsample of their world points."""
+def _clean_depth(depth: np.ndarray, conf: PlaneInitConfig) -> np.ndarray:
+    return np.where(np.isfinite(depth) & (depth > 0) & (depth <= conf.max_depth), depth, 0).astype(np.float32)
+
+
+def _bounds_sample(frames, conf: PlaneInitConfig) -> tuple[list, list]:
+    """Indices of the frames with usable depth and a subsample of their world points (for the grid's box)."""
+    # 20,000 points per frame up to 100 frames, then a total of 2 million: the box of a 7,000-frame scene
+    # fits in ~50 MB
+    per_frame = max(1000, min(20000, 2_000_000 // max(len(frames), 1)))
     used, pts = [], []
-    for _, cam, T, depth in frames:
-        depth = np.where(np.isfinite(depth) & (depth > 0) & (depth <= conf.max_depth), depth, 0).astype(np.float32)
+    for i in range(len(frames)):
+        _, cam, T, depth = frames[i]
+        depth = _clean_depth(depth, conf)
         if not (depth > 0).any():
             continue
-        used.append((cam, T, depth))
+        used.append(i)
         X = cam.pixel_rays()[depth > 0] * depth[depth > 0, None]
-        sub = X[:: max(1, len(X) // 20000)]
+        sub = X[:: max(1, len(X) // per_frame)]
         pts.append((sub - T[:3, 3]) @ T[:3, :3])  # world = R^T (x - t)
     return used, pts
 
@@ -140,20 +180,55 @@ def _tsdf_volume(pts: np.ndarray, conf: PlaneInitConfig):
     return lo, voxel, trunc, dims
 
 
-def _integrate_tsdf(frames: list, lo, voxel: float, trunc: float, dims, device) -> tuple[torch.Tensor, torch.Tensor]:
+SLAB_VOXELS = 2_000_000  # voxels projected at once: bounds the temporaries of one frame's update
+
+
+def _integrate_tsdf(frames, conf: PlaneInitConfig, lo, voxel: float, trunc: float, dims, device) -> tuple[torch.Tensor, torch.Tensor]:
     """Fuse every frame into a dense grid; returns the flat TSDF and observation weight per voxel."""
     f32 = dict(dtype=torch.float32, device=device)
     axes = [torch.arange(d, **f32) * voxel + float(lo[i]) for i, d in enumerate(dims)]
-    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    tsdf = torch.ones(len(grid), **f32)
-    weight = torch.zeros(len(grid), **f32)
-    for cam, T, depth in frames:
-        _integrate_frame(grid, tsdf, weight, cam, T, depth, trunc)
+    tsdf = torch.ones(int(np.prod(dims)), **f32)
+    weight = torch.zeros(int(np.prod(dims)), **f32)
+    for _, cam, T, depth in frames:
+        depth = _clean_depth(depth, conf)
+        box = _frustum_box(cam, T, float(depth.max()) + trunc, lo, voxel, dims)
+        if box is None:
+            continue
+        (x0, x1), (y0, y1), (z0, z1) = box
+        step = max(1, SLAB_VOXELS // ((y1 - y0) * (z1 - z0)))
+        d = torch.as_tensor(depth, **f32)
+        for xa in range(x0, x1, step):
+            xb = min(xa + step, x1)
+            sub = torch.stack(torch.meshgrid(axes[0][xa:xb], axes[1][y0:y1], axes[2][z0:z1], indexing="ij"), -1).reshape(-1, 3)
+            ii = torch.arange(xa, xb, device=device)[:, None, None] * (dims[1] * dims[2])
+            jj = torch.arange(y0, y1, device=device)[None, :, None] * dims[2]
+            kk = torch.arange(z0, z1, device=device)[None, None, :]
+            _integrate_frame(sub, (ii + jj + kk).reshape(-1), tsdf, weight, cam, T, d, trunc)
     return tsdf, weight
 
 
-def _integrate_frame(grid: torch.Tensor, tsdf: torch.Tensor, weight: torch.Tensor, cam, T, depth, trunc: float):
-    """Average one frame's truncated signed distances into ``tsdf`` / ``weight`` (in place)."""
+def _frustum_box(cam, T, far: float, lo, voxel: float, dims):
+    """Index ranges ((x0, x1), (y0, y1), (z0, z1)) of the grid voxels inside the bounding box of the view's
+    frustum up to depth ``far`` (the apex and the four image corners there), or None when it misses the grid."""
+    if not far > 0:
+        return None
+    R, t = T[:3, :3], T[:3, 3]
+    corners = np.array([[0, 0], [cam.width, 0], [0, cam.height], [cam.width, cam.height]], dtype=float)
+    rays = np.stack([(corners[:, 0] - cam.cx) / cam.fx, (corners[:, 1] - cam.cy) / cam.fy, np.ones(4)], 1) * far
+    pts = np.concatenate([np.zeros((1, 3)), rays]) - t
+    world = pts @ R  # R^T (x - t), row-wise
+    a = np.floor((world.min(0) - lo) / voxel).astype(int) - 1
+    b = np.ceil((world.max(0) - lo) / voxel).astype(int) + 2
+    a, b = np.maximum(a, 0), np.minimum(b, dims)
+    if np.any(b <= a):
+        return None
+    return tuple((int(a[i]), int(b[i])) for i in range(3))
+
+
+def _integrate_frame(grid: torch.Tensor, flat: torch.Tensor, tsdf: torch.Tensor, weight: torch.Tensor, cam, T,
+                     depth: torch.Tensor, trunc: float):
+    """Average one frame's truncated signed distances into ``tsdf`` / ``weight`` (in place) at the voxels
+    ``flat`` whose centres are ``grid`` (n, 3)."""
     f32 = dict(dtype=torch.float32, device=grid.device)
     Tt = torch.as_tensor(T, **f32)
     Xc = grid @ Tt[:3, :3].T + Tt[:3, 3]
@@ -164,11 +239,11 @@ def _integrate_frame(grid: torch.Tensor, tsdf: torch.Tensor, weight: torch.Tenso
     v = cam.fy * Xc[:, 1] / zs + cam.cy - 0.5
     inside = (z > 1e-3) & (u >= 0) & (u <= cam.width - 1) & (v >= 0) & (v <= cam.height - 1)
     idx = inside.nonzero().squeeze(1)
-    d = _sample_depth(torch.as_tensor(depth, **f32), u[idx], v[idx])
+    d = _sample_depth(depth, u[idx], v[idx])
     sdf = d - z[idx]
     # voxels far behind the surface stay unobserved, so no false surface appears there
     upd = (d > 0) & (sdf >= -trunc)
-    idx, sdf = idx[upd], sdf[upd]
+    idx, sdf = flat[idx[upd]], sdf[upd]
     val = (sdf / trunc).clamp(max=1.0)
     w_old = weight[idx]
     tsdf[idx] = (tsdf[idx] * w_old + val) / (w_old + 1)
@@ -336,11 +411,12 @@ def planes_from_mesh(vertices: np.ndarray, faces: np.ndarray, radius_scale: floa
 def init_planes(views, conf: Optional[PlaneInitConfig] = None, device=None, frames=None) -> Planes:
     """Planes initialized from the views' depth (TSDF -> mesh -> decimation -> one plane per face).
 
-    ``frames`` (from :func:`depth_frames`) may be given instead of ``views`` to reuse loaded depth.
+    ``frames`` (a :class:`DepthFrame` sequence at the fusion resolution) may be given instead of ``views``;
+    from ``views`` the depth is read one frame at a time (:class:`LazyDepthFrames`).
     """
     conf = conf or PlaneInitConfig()
     if frames is None:
-        frames = downscale_frames(depth_frames(views), conf.depth_downscale, conf.target_width)
+        frames = LazyDepthFrames(views, conf.depth_downscale, conf.target_width)
     V, F = fuse_tsdf(frames, conf, device=device)
     logger.info("plane init: fused mesh %d vertices, %d faces", len(V), len(F))
     V, F = decimate(V, F, conf.n_planes, conf.min_component_faces)
