@@ -85,3 +85,51 @@ class TestParallelSift:
         assert made == ["cuda"]
         with h5py.File(out, "r") as fd:
             assert "cuda" in fd.attrs[points.STAMP_ATTR]
+
+
+def trajectory_views(n, seed=0, length=60.0, cam=Camera(640, 480, (525.0, 525.0, 320.0, 240.0))):
+    """Posed views only (no images): a walk along a winding corridor, looking around as it goes
+    (yaw wanders, pitch a little), with returns past earlier places."""
+    from scipy.spatial.transform import Rotation
+
+    from lipmap.poses import make_T
+
+    rng = np.random.default_rng(seed)
+    s = np.linspace(0, 1, n)
+    centres = np.stack([length * s, 3 * np.sin(6 * np.pi * s), 1.5 + 0.2 * np.sin(20 * s)], 1)
+    centres += rng.normal(0, 0.05, centres.shape)
+    yaw = np.cumsum(rng.normal(0, 0.25, n))
+    pitch = rng.normal(0, 0.15, n)
+    views = []
+    for i in range(n):
+        # camera looks along +z of its frame; world_from_cam rotation: yaw about world z, pitch about x
+        R_wc = Rotation.from_euler("zx", [yaw[i], -np.pi / 2 + pitch[i]]).as_matrix()
+        T_wc = make_T(R_wc, centres[i])
+        views.append(View(name=f"seq/f{i:05d}.png", camera=cam, cam_from_world=np.linalg.inv(T_wc),
+                          color_path=f"/nonexistent/f{i:05d}.png"))
+    return views
+
+
+class TestPairsFromPoses:
+    @pytest.mark.parametrize("n,length,conf", [
+        (320, 60.0, points.PairsConfig()),
+        (150, 6.0, points.PairsConfig()),  # a small room: almost every pair is a candidate
+        (120, 20.0, points.PairsConfig(num_neighbors=4, max_angle_deg=90, min_overlap=0.05, depths=(0.5, 6.0))),
+        (60, 20.0, points.PairsConfig(min_overlap=0.0)),  # no overlap pruning possible
+    ])
+    def test_equals_dense(self, n, length, conf):
+        views = trajectory_views(n, seed=n, length=length)
+        got = points.pairs_from_poses(views, conf=conf)
+        ref = points._pairs_from_poses_dense(views, conf)
+        assert len(ref) > n
+        assert got == ref
+
+    def test_candidates_bounded_on_a_long_walk(self):
+        """On a 300 m walk the exact test runs on ~N x (views within reach), not N^2 pairs."""
+        views = trajectory_views(1500, length=300.0)
+        conf = points.PairsConfig()
+        n_cand = sum(len(I) for I, _ in points._candidate_pairs(views, points._view_samples(views, conf), conf))
+        assert n_cand < 1500 * 1499 / 2 / 10, n_cand
+        # the candidates hold every pair the exact test keeps, on a window checked densely
+        sub = views[:300]
+        assert points.pairs_from_poses(sub, conf=conf) == points._pairs_from_poses_dense(sub, conf)
