@@ -565,28 +565,59 @@ def mutual_nn_ratio(desc0: np.ndarray, desc1: np.ndarray, conf: Optional[MatchCo
 
 
 class _DescriptorCache:
-    def __init__(self, features_h5, max_items: int = 256):
+    """Unit descriptors by image name, least recently used dropped first; at most ``max_items``
+    images and ``max_bytes``. ``reads`` counts the file reads."""
+
+    def __init__(self, features_h5, max_items: int = 256, max_bytes: int = 1 << 30):
+        from collections import OrderedDict
+
         self.path = Path(features_h5)
         self.max_items = max_items
-        self.items: dict[str, np.ndarray] = {}
+        self.max_bytes = max_bytes
+        self.items: "OrderedDict[str, np.ndarray]" = OrderedDict()
+        self.nbytes = 0
+        self.reads = 0
 
     def __call__(self, name: str) -> np.ndarray:
-        if name not in self.items:
-            if len(self.items) >= self.max_items:
-                self.items.pop(next(iter(self.items)))
-            d = hloc_io.read_features(self.path, name)["descriptors"]
-            d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-            self.items[name] = d
-        return self.items[name]
+        if name in self.items:
+            self.items.move_to_end(name)
+            return self.items[name]
+        d = hloc_io.read_features(self.path, name)["descriptors"]
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        self.reads += 1
+        while self.items and (len(self.items) >= self.max_items or self.nbytes + d.nbytes > self.max_bytes):
+            self.nbytes -= self.items.popitem(last=False)[1].nbytes
+        self.items[name] = d
+        self.nbytes += d.nbytes
+        return d
 
 
-def match_features(pairs, features_h5, out_h5, conf: Optional[MatchConfig] = None, overwrite: bool = False, chunk: int = 64) -> Path:
+def _match_schedule(pairs: Sequence, block: int = 64) -> list:
+    """``pairs`` reordered so that a cache of ``2 * block`` images reads each image at most once per
+    block pair it is in: images are numbered in name order (a sequence's frames stay together),
+    grouped in blocks of ``block``, and the pairs sorted by (block of the lower number, block of
+    the higher, lower, higher). An image is then read at most min(its pairs, 2 x blocks) times,
+    once for pairs between nearby frames, whatever order the pairs came in."""
+    idx = {n: i for i, n in enumerate(sorted({n for p in pairs for n in p}))}
+
+    def key(p):
+        i, j = sorted((idx[p[0]], idx[p[1]]))
+        return i // block, j // block, i, j
+
+    return sorted(pairs, key=key)
+
+
+def match_features(pairs, features_h5, out_h5, conf: Optional[MatchConfig] = None, overwrite: bool = False, chunk: int = 64,
+                   block: int = 64, max_cache_bytes: int = 1 << 30) -> Path:
     """Match the descriptors of image pairs into an hloc ``matches.h5``.
 
     Args:
         pairs: a pairs file or a list of (name0, name1); a pair already in ``out_h5`` (either order,
             either naming) or repeated reversed in the list is matched once.
         features_h5: features of every paired image.
+        block, max_cache_bytes: the pairs are matched in :func:`_match_schedule`'s order with up
+            to ``2 * block`` images' descriptors (and at most ``max_cache_bytes``) in memory. torch's
+            matmul already uses every core, so pairs are matched one after the other.
 
     Each pair is stored as ``names_to_pair(name0, name1)`` with ``matches0`` int32 indexed by
     name0's keypoints (-1 = unmatched) and ``matching_scores0`` float32 (cosine similarity).
@@ -618,7 +649,8 @@ def match_features(pairs, features_h5, out_h5, conf: Optional[MatchConfig] = Non
     if not todo:
         return out_h5
     logger.info("Matching %d pairs (%s).", len(todo), conf.name)
-    desc = _DescriptorCache(features_h5)
+    todo = _match_schedule(todo, block)
+    desc = _DescriptorCache(features_h5, max_items=2 * block, max_bytes=max_cache_bytes)
     for start in tqdm(range(0, len(todo), chunk), desc="match", unit=f"x{chunk}pairs", disable=len(todo) <= chunk):
         with h5_update(out_h5, fresh=fresh) as fd:
             fd.attrs[STAMP_ATTR] = stamp.to_json()

@@ -133,3 +133,53 @@ class TestPairsFromPoses:
         # the candidates hold every pair the exact test keeps, on a window checked densely
         sub = views[:300]
         assert points.pairs_from_poses(sub, conf=conf) == points._pairs_from_poses_dense(sub, conf)
+
+
+class TestMatching:
+    def test_grouped_matching_equals_per_pair(self, tmp_path, monkeypatch):
+        """Scattered pairs (shuffled, both orientations) give each pair the matches of matching it
+        alone, and with a small cache each image is read at most once per block pair."""
+        views = texture_views(tmp_path, 12, seed=3)
+        feats = extract_sift(views, tmp_path / "f.h5", SiftConfig(max_keypoints=200, first_octave=0), workers=1)
+        rng = np.random.default_rng(0)
+        names = [v.name for v in views]
+        pairs = [(names[i], names[j]) if rng.random() < 0.5 else (names[j], names[i])
+                 for i in range(12) for j in range(i + 1, 12) if rng.random() < 0.6]
+        pairs = [pairs[k] for k in rng.permutation(len(pairs))]
+        reads = []
+        real = points.hloc_io.read_features
+        monkeypatch.setattr(points.hloc_io, "read_features", lambda p, n: reads.append(n) or real(p, n))
+        out = points.match_features(pairs, feats, tmp_path / "m.h5", chunk=5, block=3)
+        n_blocks = 4
+        assert max(reads.count(n) for n in names) <= 2 * n_blocks
+        assert len(reads) < len(pairs)  # the former FIFO-in-pair-order reads ~2 per pair at this cache size
+        for a, b in pairs:
+            m, s = hloc_io_matches(out, a, b)
+            da, db = (points._DescriptorCache(feats)(n) for n in (a, b))
+            m_ref, s_ref = points.mutual_nn_ratio(da, db)
+            np.testing.assert_array_equal(m, m_ref)
+            np.testing.assert_array_equal(s, s_ref)
+
+    def test_cache_bounded(self, tmp_path):
+        views = texture_views(tmp_path, 5, seed=1)
+        feats = extract_sift(views, tmp_path / "f.h5", SiftConfig(max_keypoints=200, first_octave=0), workers=1)
+        cache = points._DescriptorCache(feats, max_items=3, max_bytes=10**9)
+        for v in views + views[::-1]:
+            cache(v.name)
+            assert len(cache.items) <= 3
+        assert cache.reads == 5 + 2  # the last three read are still there on the way back
+        one = cache(views[0].name).nbytes
+        small = points._DescriptorCache(feats, max_items=100, max_bytes=int(2.5 * one))
+        for v in views:
+            small(v.name)
+        assert small.nbytes <= 2.5 * one and len(small.items) <= 2
+
+
+def hloc_io_matches(path, a, b):
+    import h5py
+
+    from localization.hloc_io import names_to_pair
+
+    with h5py.File(path, "r") as fd:
+        g = fd[names_to_pair(a, b)]
+        return g["matches0"][()], g["matching_scores0"][()]
