@@ -183,3 +183,18 @@ def hloc_io_matches(path, a, b):
     with h5py.File(path, "r") as fd:
         g = fd[names_to_pair(a, b)]
         return g["matches0"][()], g["matching_scores0"][()]
+
+
+class TestRetrieval:
+    @pytest.mark.parametrize("k,block", [(1, 7), (10, 16), (50, 1000), (200, 5)])
+    def test_blocked_top_k_equals_full_sort(self, k, block):
+        """Blocked partial ranking = the former full sort, ties included. Small integer descriptors
+        make every similarity exact: a block's matmul may round differently from the full one's,
+        which can swap scores within an ulp of each other on real descriptors."""
+        from localization.retrieval import _top_k_full_sort, top_k
+
+        rng = np.random.default_rng(k)
+        q = rng.integers(-3, 4, size=(53, 8)).astype(np.float32)
+        d = rng.integers(-3, 4, size=(120, 8)).astype(np.float32)
+        d[40:60] = d[0]  # many exact ties
+        np.testing.assert_array_equal(top_k(q, d, k, block=block), _top_k_full_sort(q, d, k))
