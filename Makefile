@@ -9,6 +9,8 @@ TORCH ?= torch==2.13.0
 PIP_EXTRA ?=
 OUT ?= outputs/demo
 SEED ?= 0
+# optional extras installed with the package: test (the suite), ray (eval --ray and its test); EXTRAS=test skips Ray
+EXTRAS ?= test,ray
 
 .PHONY: install demo test clean
 
@@ -18,7 +20,7 @@ $(VENV)/.installed: pyproject.toml Makefile
 	$(PY) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install -q --upgrade pip
 	# torch is pinned in the SAME command as the rest so no dependency can pull a CUDA build.
-	$(VENV)/bin/python -m pip install -q $(PIP_EXTRA) "$(TORCH)" -e ".[test]"
+	$(VENV)/bin/python -m pip install -q $(PIP_EXTRA) "$(TORCH)" -e ".[$(EXTRAS)]"
 	touch $@
 
 demo: install

@@ -82,6 +82,15 @@ def cmd_eval(args):
     from .pipeline import LocalizationConfig, run_eval
     from .linequery import LineQueryConfig
 
+    runner = None
+    if args.ray is not None:  # before any work: a missing Ray or a bad option stops the run at once
+        from .scaleout import RayRunner, import_ray
+
+        import_ray()
+        runner = RayRunner(address=args.ray or None, num_cpus=args.ray_cpus,
+                           chunk=RayRunner.chunk if args.ray_chunk is None else args.ray_chunk)
+    elif args.ray_cpus is not None or args.ray_chunk is not None:
+        raise InputError("--ray-cpus and --ray-chunk go with --ray")
     conf = LocalizationConfig(seed=args.seed, max_point_matches=args.max_point_matches, mapping=args.preset,
                               map_method=args.method, points=args.points)
     if args.line_query:
@@ -99,7 +108,7 @@ def cmd_eval(args):
         scenes = _scene_names(args.dataset, root, args.scenes)
     path = run_eval(args.dataset, root, scenes, args.out, conf, hloc_dir=args.hloc, pose_source=args.pose_source,
                     register_depth=not args.no_registration, overwrite=args.overwrite, mapping_step=args.mapping_step,
-                    skip_bad_frames=args.skip_bad_frames)
+                    skip_bad_frames=args.skip_bad_frames, runner=runner)
     summary = path.parent / "summary.md"
     print(summary.read_text())
     print(f"results: {path}\nsummary: {summary}")
@@ -252,6 +261,12 @@ def _add_eval_parser(sub):
     p.add_argument("--line-query", default=None, choices=list(LINE_QUERY_METHODS))
     p.add_argument("--points", default="sift-n4096", choices=list(point_confs), help="built-in point preset")
     p.add_argument("--synth-preset", default="small", choices=list(SYNTH_PRESETS))
+    p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
+                   help="run on Ray (pip install \"lipmap[ray]\"): each scene's mapping and chunks of its queries are "
+                        "tasks. No ADDRESS: a local Ray instance; 'auto', 'ray://HOST:PORT' or 'HOST:PORT': a cluster whose "
+                        "workers see OUT and the data at the same paths and run the same Python environment")
+    p.add_argument("--ray-cpus", type=int, default=None, metavar="N", help="CPUs of the local Ray instance (default: all)")
+    p.add_argument("--ray-chunk", type=int, default=None, metavar="N", help="queries per Ray task (default 50)")
     _add_pose_args(p)
     p.set_defaults(func=cmd_eval)
 

@@ -216,6 +216,36 @@ class _Journal:
         self.f.close()
 
 
+@dataclass
+class SceneJob:
+    """One scene's localization once :func:`prepare_scene` has made its artifacts: everything a worker needs to
+    localize some of its queries from the files under ``out_dir`` (:func:`localize_chunk`), and the driver to
+    journal them and write the results (:func:`journal_records`, :func:`finish_scene`). Small and picklable."""
+
+    scene: object  # lipmap.scene.Scene with the frames that passed check_scene
+    out_dir: Path
+    conf: LocalizationConfig
+    hloc_dir: Optional[Path]
+    map_info: dict
+    qlines_h5: Path
+    journal_path: Path
+    bad_queries: dict  # query name -> problem (reported as failed)
+    gt: dict  # cam_from_world of every query, bad ones included
+    skipped: dict  # query name -> why its ground truth is invalid
+    timings: dict
+    sources: dict
+
+    def open_points(self):
+        """The point source, reopened from its artifacts (nothing is rebuilt)."""
+        return open_points(self.scene, self.out_dir, self.conf, self.hloc_dir)
+
+    def open_line_query(self) -> LineQuery:
+        """The line query on the line map, reloaded from ``linemap.h5``."""
+        from lipmap.linemap import LineMap
+
+        return _line_query(LineMap.load(self.out_dir / self.map_info["path"]), self.conf, self.map_info)
+
+
 def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, lines_source=None, overwrite=False,
                    skip_bad_frames: bool = False, checkpoint: Optional[Callable[[str], None]] = None) -> dict:
     """Run the whole per-scene pipeline and write the scene's results; returns the scene summary.
@@ -231,6 +261,22 @@ def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, line
     ``checkpoint(event)`` is called after each artifact ("lines2d", "planes", "linemap", "mapped") and
     after each query's journal entry ("query"): progress for benchmarks, fault injection for tests.
     """
+    job, points, lq = prepare_scene(scene, out_dir, conf, hloc_dir, lines_source, overwrite, skip_bad_frames, checkpoint)
+    done = resume_scene(job, overwrite)
+    todo = pending_queries(job, done)
+    journal_records(job, done, localize_views(tqdm(todo, desc=f"localize {job.scene.name}"), points, job.qlines_h5, lq, conf),
+                    checkpoint)
+    return finish_scene(job, done)
+
+
+def prepare_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, lines_source=None, overwrite=False,
+                  skip_bad_frames: bool = False, checkpoint: Optional[Callable[[str], None]] = None):
+    """Check the frames, then make (or reuse) the scene's line map, point source and query lines.
+
+    Returns (:class:`SceneJob`, point source, :class:`LineQuery`): the job names the artifacts on disk; the other
+    two are the objects already in memory, which a worker elsewhere reopens with ``job.open_points()`` and
+    ``job.open_line_query()``.
+    """
     from lipmap.datasets.validate import check_scene
 
     out_dir = Path(out_dir)
@@ -245,17 +291,27 @@ def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, line
     t_map = time.time() - t0
     checkpoint("mapped")
     lq = _line_query(linemap, conf, map_info)
-    points = HlocPoints(Path(hloc_dir) / scene.name) if hloc_dir else BuiltinPoints(scene, out_dir, conf, overwrite)
+    points = open_points(scene, out_dir, conf, hloc_dir, overwrite)
     qlines_h5 = query_lines_file(scene, out_dir, conf, overwrite)
     journal_path = out_dir / f"queries-{_journal_digest(scene, conf, map_info, points, qlines_h5)}.jsonl"
-    done = _resume(journal_path, scene, bad_queries, overwrite)
-    _localize_all(scene, points, qlines_h5, lq, conf, journal_path, done, checkpoint)
-    gt = {v.name: v.cam_from_world for v in all_queries}
-    skipped = {v.name: v.meta["gt_error"] for v in all_queries if v.meta.get("gt_error")}
     sources = {"map": map_info, "points": {"folder": _rel(points.folder, out_dir), "digest": points.stamp.digest},
                "journal": journal_path.name}
-    return write_scene_results(scene, out_dir, done, conf, linemap, {"map_s": t_map, **points.timings}, gt, skipped,
-                               sources)
+    job = SceneJob(scene, out_dir, conf, None if hloc_dir is None else Path(hloc_dir), map_info, qlines_h5, journal_path,
+                   bad_queries, gt={v.name: v.cam_from_world for v in all_queries},
+                   skipped={v.name: v.meta["gt_error"] for v in all_queries if v.meta.get("gt_error")},
+                   timings={"map_s": t_map, **points.timings}, sources=sources)
+    return job, points, lq
+
+
+def open_points(scene, out_dir: Path, conf: LocalizationConfig, hloc_dir=None, overwrite: bool = False):
+    """The scene's 2D-3D point source: hloc's files under ``hloc_dir/<scene>``, else the built-in one (made or reused)."""
+    return HlocPoints(Path(hloc_dir) / scene.name) if hloc_dir else BuiltinPoints(scene, out_dir, conf, overwrite)
+
+
+def finish_scene(job: SceneJob, done: dict) -> dict:
+    """Write the scene's results files from the records of its queries; returns the scene's results."""
+    return write_scene_results(job.scene, job.out_dir, done, job.conf, job.map_info["n_lines"], job.timings, job.gt,
+                               job.skipped, job.sources)
 
 
 def _rel(path: Path, base: Path) -> str:
@@ -308,41 +364,59 @@ def _journal_digest(scene, conf: LocalizationConfig, map_info: dict, points, qli
                    "query_lines": qlines_h5.name, "queries": views_key(scene.query)}, 10)
 
 
-def _resume(journal_path: Path, scene, bad_queries: dict, overwrite: bool) -> dict:
+def resume_scene(job: SceneJob, overwrite: bool = False) -> dict:
     """Queries already localized by this configuration (from its journal), plus the bad ones as failures."""
-    if overwrite and journal_path.exists():
-        journal_path.unlink()
-    done = _read_journal(journal_path)
+    if overwrite and job.journal_path.exists():
+        job.journal_path.unlink()
+    done = _read_journal(job.journal_path)
     if done:
-        logger.info("Resuming %s: %d of %d queries already localized (%s).", scene.name, len(done), len(scene.query), journal_path.name)
-    for name, problem in bad_queries.items():
+        logger.info("Resuming %s: %d of %d queries already localized (%s).", job.scene.name, len(done),
+                    len(job.scene.query), job.journal_path.name)
+    for name, problem in job.bad_queries.items():
         done[name] = {"name": name, "point": {"success": False}, "point+line": {"success": False}, "error": problem}
     return done
 
 
-def _localize_all(scene, points, qlines_h5: Path, lq: LineQuery, conf: LocalizationConfig, journal_path: Path,
-                  done: dict, checkpoint) -> None:
-    """Localize every query not in ``done``, journaling each one; a failing query never stops the others."""
+def pending_queries(job: SceneJob, done: dict) -> list:
+    """The query views not in ``done``, in the scene's order."""
+    return [v for v in job.scene.query if v.name not in done]
+
+
+def localize_views(views, points, qlines_h5: Path, lq: LineQuery, conf: LocalizationConfig):
+    """Yield the record of each view, in order (:func:`localize_query`); a failing query never stops the others."""
     from lipmap.lines2d import load_lines
 
-    journal = _Journal(journal_path)
+    for v in views:
+        try:
+            lines2d = load_lines(qlines_h5, v.name)
+        except Exception as e:  # noqa: BLE001 - a bad query must not stop the others
+            lines2d = np.zeros((0, 4))
+            logger.warning("No lines for query %s: %s", v.name, e)
+        try:
+            rec = localize_query(v.name, v.camera, points, lines2d, lq, conf, v.cam_from_world)
+        except Exception as e:  # noqa: BLE001
+            logger.warning("Query %s failed: %s", v.name, e)
+            rec = {"name": v.name, "point": {"success": False}, "point+line": {"success": False}, "error": repr(e)}
+        yield rec
+
+
+def localize_chunk(job: SceneJob, names: list) -> list:
+    """Records of the queries ``names`` of a prepared scene, reopening its artifacts from disk: the unit of work
+    that a worker process or machine runs (localization.scaleout)."""
+    views = {v.name: v for v in job.scene.query}
+    return list(localize_views([views[n] for n in names], job.open_points(), job.qlines_h5, job.open_line_query(), job.conf))
+
+
+def journal_records(job: SceneJob, done: dict, records, checkpoint: Optional[Callable[[str], None]] = None) -> None:
+    """Append each record to the scene's journal (fsync'd, so a killed run resumes after it) and to ``done``,
+    in the order given; ``checkpoint("query")`` after each."""
+    journal = _Journal(job.journal_path)
     try:
-        for v in tqdm(scene.query, desc=f"localize {scene.name}"):
-            if v.name in done:
-                continue
-            try:
-                lines2d = load_lines(qlines_h5, v.name)
-            except Exception as e:  # noqa: BLE001 - a bad query must not stop the others
-                lines2d = np.zeros((0, 4))
-                logger.warning("No lines for query %s: %s", v.name, e)
-            try:
-                rec = localize_query(v.name, v.camera, points, lines2d, lq, conf, v.cam_from_world)
-            except Exception as e:  # noqa: BLE001
-                logger.warning("Query %s failed: %s", v.name, e)
-                rec = {"name": v.name, "point": {"success": False}, "point+line": {"success": False}, "error": repr(e)}
+        for rec in records:
             journal.write(rec)
-            done[v.name] = rec
-            checkpoint("query")
+            done[rec["name"]] = rec
+            if checkpoint:
+                checkpoint("query")
     finally:
         journal.close()
 
@@ -363,7 +437,7 @@ def line_match_stats(recs) -> dict:
     }
 
 
-def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConfig, linemap, timings, gt=None,
+def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConfig, n_map_lines: int, timings, gt=None,
                         skipped=None, sources: Optional[dict] = None) -> dict:
     from .hloc_io import write_results
 
@@ -387,7 +461,7 @@ def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConf
         "scene": scene.name,
         "dataset": scene.dataset,
         "pose_source": scene.pose_source,
-        "n_map_lines": len(linemap),
+        "n_map_lines": n_map_lines,
         **(sources or {}),
         "config": json.loads(json.dumps(asdict(conf), default=str)),
         "timings": timings,
@@ -401,21 +475,40 @@ def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConf
     return out
 
 
+def localize_scenes(scenes, conf: LocalizationConfig, hloc_dir=None, overwrite=False, skip_bad_frames: bool = False,
+                    checkpoint: Optional[Callable[[str], None]] = None):
+    """The local scene runner of :func:`run_eval`: ``scenes`` yields (scene, out_dir); yields each scene's results,
+    in order. localization.scaleout.RayRunner is the other one (same arguments, same results)."""
+    for scene, out_dir in scenes:
+        yield localize_scene(scene, out_dir, conf, hloc_dir, overwrite=overwrite, skip_bad_frames=skip_bad_frames,
+                             checkpoint=checkpoint)
+
+
 def run_eval(dataset: str, root, scenes, out, conf: LocalizationConfig, hloc_dir=None, pose_source="posetxt",
              register_depth=True, overwrite=False, mapping_step: int = 1, skip_bad_frames: bool = False,
-             checkpoint: Optional[Callable[[str], None]] = None) -> Path:
-    """Localize every scene and write OUT/<dataset>/results.json and summary.md; returns the results path."""
+             checkpoint: Optional[Callable[[str], None]] = None, runner: Optional[Callable] = None) -> Path:
+    """Localize every scene and write OUT/<dataset>/results.json and summary.md; returns the results path.
+
+    ``runner`` localizes the scenes (default :func:`localize_scenes`, here, one after the other); e.g.
+    ``localization.scaleout.RayRunner`` spreads them and their queries over a Ray cluster.
+    """
     from lipmap.datasets import load_scene
 
-    out = Path(out) / dataset
-    all_res = {"dataset": dataset, "root": str(Path(root).resolve()), "pose_source": pose_source, "config": json.loads(json.dumps(asdict(conf), default=str)),
+    # absolute paths: a runner's workers may start elsewhere, and the paths in messages are the same either way
+    root, out = Path(root).resolve(), Path(out).resolve() / dataset
+    all_res = {"dataset": dataset, "root": str(root), "pose_source": pose_source, "config": json.loads(json.dumps(asdict(conf), default=str)),
                "scenes": {}, "scene_details": {}}
-    for name in scenes:
-        scene = load_scene(dataset, root, name, pose_source=pose_source, register_depth=register_depth,
-                           mapping_step=mapping_step, skip_bad_frames=skip_bad_frames)
-        logger.info("Scene %s: %d mapping, %d query views (poses: %s).", name, len(scene.mapping), len(scene.query), pose_source)
-        res = localize_scene(scene, out / name, conf, hloc_dir, overwrite=overwrite, skip_bad_frames=skip_bad_frames,
-                             checkpoint=checkpoint)
+
+    def loaded():
+        for name in scenes:
+            scene = load_scene(dataset, root, name, pose_source=pose_source, register_depth=register_depth,
+                               mapping_step=mapping_step, skip_bad_frames=skip_bad_frames)
+            logger.info("Scene %s: %d mapping, %d query views (poses: %s).", name, len(scene.mapping), len(scene.query), pose_source)
+            yield scene, out / name
+
+    results = (runner or localize_scenes)(loaded(), conf, hloc_dir=hloc_dir, overwrite=overwrite,
+                                          skip_bad_frames=skip_bad_frames, checkpoint=checkpoint)
+    for name, res in zip(scenes, results, strict=True):  # a runner yields the scenes' results in their order
         all_res["scenes"][name] = res["summary"]
         all_res["scene_details"][name] = {"n_map_lines": res["n_map_lines"], "map": res["map"], "timings": res["timings"]}
         s = res["summary"]

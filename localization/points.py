@@ -17,6 +17,7 @@ returns - pinned by a test); the files hold hloc's (integer centres) and :mod:`.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -136,7 +137,23 @@ def colmap_quiet():
         pycolmap.logging.minloglevel = old
 
 
-def _sift_extractor(conf: SiftConfig):
+def sift_device(device: str = "auto") -> str:
+    """Where pycolmap's SIFT runs: "cuda" for ``auto`` when pycolmap was built with CUDA and sees a
+    GPU, else "cpu". GPU SIFT finds (slightly) different features, so the device is recorded in the
+    features file's stamp when it is not the CPU."""
+    import pycolmap
+
+    if device not in ("auto", "cpu", "cuda"):
+        raise InputError(f"unknown SIFT device {device!r}; choose auto, cpu or cuda")
+    if device == "auto":
+        n_gpu = getattr(pycolmap, "get_num_cuda_devices", lambda: 1)
+        device = "cuda" if getattr(pycolmap, "has_cuda", False) and n_gpu() > 0 else "cpu"
+    if device == "cuda" and not getattr(pycolmap, "has_cuda", False):
+        raise InputError("SIFT on cuda needs a pycolmap built with CUDA (pycolmap.has_cuda is False)")
+    return device
+
+
+def _sift_extractor(conf: SiftConfig, device: str = "cpu"):
     import pycolmap
 
     opts = pycolmap.FeatureExtractionOptions()
@@ -149,7 +166,7 @@ def _sift_extractor(conf: SiftConfig):
     opts.sift.upright = conf.upright
     # pycolmap.Sift(...) still works in 4.2.1 but is deprecated in favour of FeatureExtractor.
     with colmap_quiet():
-        return pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu)
+        return pycolmap.FeatureExtractor.create(opts, getattr(pycolmap.Device, device))
 
 
 def sift_features(gray: np.ndarray, conf: SiftConfig, extractor=None) -> dict:
@@ -175,22 +192,99 @@ def sift_features(gray: np.ndarray, conf: SiftConfig, extractor=None) -> dict:
     return {"keypoints": kp[:, :2], "descriptors": d, "scales": kp[:, 2], "oris": kp[:, 3]}
 
 
-def extract_sift(views: Sequence, out_h5, conf: Optional[SiftConfig] = None, overwrite: bool = False, chunk: int = 16) -> Path:
+_WORKER_EXTRACTOR = None  # one SIFT extractor per worker process (see _extract_in_worker)
+
+
+def _load_and_extract(view, conf: SiftConfig, extractor) -> tuple:
+    gray = view.load_color(gray=True)
+    return (gray.shape[1], gray.shape[0]), sift_features(gray, conf, extractor)
+
+
+def _init_worker(conf: SiftConfig, quiet_level: int):
+    global _WORKER_EXTRACTOR
+    logger.setLevel(quiet_level)
+    _WORKER_EXTRACTOR = _sift_extractor(conf, "cpu")
+
+
+def _extract_in_worker(view, conf: SiftConfig) -> tuple:
+    return _load_and_extract(view, conf, _WORKER_EXTRACTOR)
+
+
+def default_workers() -> int:
+    """Worker processes for CPU SIFT: the cores this process may use."""
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _sift_stream(todo: Sequence, conf: SiftConfig, workers: int, device: str):
+    """(view, image size, features) for each of ``todo``, in order.
+
+    pycolmap's ``extract_from_uint8_array`` holds the GIL (its binding releases nothing, and two
+    threads ran at 0.95 CPU-seconds per second), so CPU SIFT runs in ``workers`` processes, each
+    with its own extractor, that also read the images; at most ``2 * workers`` images are in flight
+    so memory stays bounded. On the GPU (or with one worker) one extractor runs here while a thread
+    reads the next images (the decoders release the GIL).
+    """
+    from collections import deque
+    from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
+    ahead = 2 * max(1, workers)
+    if device == "cpu" and workers > 1:
+        import multiprocessing as mp
+
+        # spawn, not fork: the parent may hold torch / OpenMP threads
+        pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                                   initargs=(conf, logger.getEffectiveLevel()))
+
+        def submit(v):
+            return pool.submit(_extract_in_worker, v, conf)
+    else:
+        extractor = _sift_extractor(conf, device)
+        pool = ThreadPoolExecutor(1)
+
+        def submit(v):
+            return pool.submit(v.load_color, gray=True)
+
+    with pool:
+        it = iter(todo)
+        pending = deque((v, submit(v)) for _, v in zip(range(ahead), it))  # range first: zip must not consume a view it drops
+        while pending:
+            v, fut = pending.popleft()
+            nxt = next(it, None)
+            if nxt is not None:
+                pending.append((nxt, submit(nxt)))
+            if isinstance(pool, ThreadPoolExecutor):
+                gray = fut.result()
+                yield v, (gray.shape[1], gray.shape[0]), sift_features(gray, conf, extractor)
+            else:
+                size, f = fut.result()
+                yield v, size, f
+
+
+def extract_sift(views: Sequence, out_h5, conf: Optional[SiftConfig] = None, overwrite: bool = False, chunk: int = 16,
+                 workers: Optional[int] = None, device: str = "auto") -> Path:
     """Extract SIFT for every view into an hloc ``features.h5``; images already there are skipped.
 
     Args:
-        views: objects with ``.name`` and ``.load_color(gray=True)`` (:class:`lipmap.scene.View`).
+        views: objects with ``.name`` and ``.load_color(gray=True)`` (:class:`lipmap.scene.View`);
+            picklable when more than ``chunk`` images go to worker processes.
         out_h5: the features file (created or extended).
         conf: :class:`SiftConfig`.
+        workers: CPU SIFT processes (default: the usable cores); 1 = in this process. A run of
+            ``chunk`` images or fewer always stays in this process.
+        device: "auto" (cuda when pycolmap has it and sees a GPU), "cpu" or "cuda" (:func:`sift_device`).
 
-    Written per image: ``keypoints`` (N, 2) float32 hloc convention (COLMAP - 0.5),
+    Written per image, in the order of ``views`` and identical whatever ``workers``: ``keypoints``
+    (N, 2) float32 hloc convention (COLMAP - 0.5),
     ``descriptors`` (128, N) float16 (lossless: COLMAP quantises SIFT to uint8 / 512), ``scores``
     (N,) = the SIFT scale (pycolmap 4 exposes no detector response; larger scales are the ones
     COLMAP keeps first), ``scales``, ``oris``, ``image_size`` [w, h]; attrs ``uncertainty`` = 1 px.
     """
     conf = conf or SiftConfig()
+    device = sift_device(device)
     out_h5 = Path(out_h5)
-    stamp = Stamp("features", {"sift": asdict(conf)})
+    stamp = Stamp("features", {"sift": asdict(conf)} if device == "cpu" else {"sift": asdict(conf), "device": device})
     fresh = not reuse(out_h5, stamp, overwrite, "SIFT features")
     done = set() if fresh else set(list_h5_names(out_h5))
     todo = [v for v in views if v.name not in done]
@@ -198,25 +292,29 @@ def extract_sift(views: Sequence, out_h5, conf: Optional[SiftConfig] = None, ove
         logger.info("Skipping %d images already in %s.", len(views) - len(todo), out_h5.name)
     if not todo:
         return out_h5
-    logger.info("Extracting SIFT (%s) for %d images.", conf.name, len(todo))
-    extractor = _sift_extractor(conf)
-    for start in tqdm(range(0, len(todo), chunk), desc="sift", unit=f"x{chunk}img", disable=len(todo) <= chunk):
-        with h5_update(out_h5, fresh=fresh) as fd:
-            fd.attrs[STAMP_ATTR] = stamp.to_json()
-            for v in todo[start : start + chunk]:
-                gray = v.load_color(gray=True)
-                f = sift_features(gray, conf, extractor)
-                hloc_io.write_features(
-                    fd,
-                    v.name,
-                    f["keypoints"],
-                    f["descriptors"].astype(np.float16),
-                    scores=f["scales"],
-                    image_size=(gray.shape[1], gray.shape[0]),
-                    uncertainty=1.0,
-                    extra={"scales": f["scales"].astype(np.float32), "oris": f["oris"].astype(np.float32)},
-                )
-        fresh = False
+    workers = default_workers() if workers is None else max(1, int(workers))
+    workers = min(workers, len(todo)) if len(todo) > chunk else 1
+    logger.info("Extracting SIFT (%s, %s%s) for %d images.", conf.name, device,
+                f", {workers} processes" if device == "cpu" and workers > 1 else "", len(todo))
+    stream = _sift_stream(todo, conf, workers, device)
+    try:
+        for start in tqdm(range(0, len(todo), chunk), desc="sift", unit=f"x{chunk}img", disable=len(todo) <= chunk):
+            with h5_update(out_h5, fresh=fresh) as fd:
+                fd.attrs[STAMP_ATTR] = stamp.to_json()
+                for v, size, f in itertools.islice(stream, chunk):
+                    hloc_io.write_features(
+                        fd,
+                        v.name,
+                        f["keypoints"],
+                        f["descriptors"].astype(np.float16),
+                        scores=f["scales"],
+                        image_size=size,
+                        uncertainty=1.0,
+                        extra={"scales": f["scales"].astype(np.float32), "oris": f["oris"].astype(np.float32)},
+                    )
+            fresh = False
+    finally:
+        stream.close()  # shuts the workers down, also on an error
     return out_h5
 
 
@@ -230,8 +328,8 @@ def frustum_overlap(view_a, view_b, conf: Optional[PairsConfig] = None) -> float
     return float(_overlap_matrix([view_a, view_b], conf or PairsConfig())[0, 1])
 
 
-def _overlap_matrix(views, conf: PairsConfig) -> np.ndarray:
-    from lipmap.geometry import project_points
+def _view_samples(views, conf: PairsConfig) -> list:
+    """Each view's grid of pixel rays at the nominal depths, in the world frame: (S, 3) per view."""
     from lipmap.poses import invert_T
 
     gx, gy = conf.grid
@@ -245,23 +343,169 @@ def _overlap_matrix(views, conf: PairsConfig) -> np.ndarray:
         pts_cam = np.concatenate([rays * d for d in conf.depths])
         T = invert_T(v.cam_from_world)
         samples.append(pts_cam @ T[:3, :3].T + T[:3, 3])
+    return samples
+
+
+def _overlap_from(samples_i: np.ndarray, view_j) -> np.ndarray:
+    """Fraction of each set of samples (..., S, 3) that ``view_j`` sees inside its image: (...,)."""
+    from lipmap.geometry import project_points
+
+    uv, z = project_points(samples_i, view_j.cam_from_world, view_j.camera)
+    cam = view_j.camera
+    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= cam.width) & (uv[..., 1] >= 0) & (uv[..., 1] <= cam.height)
+    return inside.mean(-1)
+
+
+def _overlap_matrix(views, conf: PairsConfig) -> np.ndarray:
+    """Dense (N, N) frustum overlap, ov[i, j] = fraction of i's samples j sees; the reference for
+    :func:`pairs_from_poses`' pruned search (O(N^2) projections)."""
+    samples = _view_samples(views, conf)
     n = len(views)
     ov = np.eye(n)
     for j, vj in enumerate(views):
         for i in range(n):
             if i == j:
                 continue
-            uv, z = project_points(samples[i], vj.cam_from_world, vj.camera)
-            inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= vj.camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= vj.camera.height)
-            ov[i, j] = inside.mean()
+            ov[i, j] = _overlap_from(samples[i], vj)
     return ov
+
+
+def _frustum_bounds(views, samples):
+    """Per view: centre (3,), optical axis (3,), half-angle of the cone around the axis that holds
+    the image (its widest corner) and the farthest sample from the centre."""
+    centres = np.stack([_centre(v) for v in views])
+    axes = np.stack([v.cam_from_world[2, :3] for v in views])
+    half = []
+    for v in views:
+        cam = v.camera
+        x = np.array([0.0, cam.width]) - cam.cx
+        y = np.array([0.0, cam.height]) - cam.cy
+        r = np.hypot(x[:, None] / cam.fx, y[None, :] / cam.fy).max()
+        half.append(np.arctan(r))
+    reach = np.array([np.linalg.norm(s - c, axis=1).max() for s, c in zip(samples, centres)])
+    return centres, axes, np.array(half), reach
+
+
+def _centre(view) -> np.ndarray:
+    T = view.cam_from_world
+    return -T[:3, :3].T @ T[:3, 3]
+
+
+def _ball_meets_cone(mid, radius, apex, axis, half) -> np.ndarray:
+    """Whether balls (mid, radius) can meet the infinite cones (apex, unit axis, half-angle); arrays
+    of pairs. Conservative (1e-6 rad slack): a False is certain."""
+    w = mid - apex
+    dist = np.linalg.norm(w, axis=1)
+    cosb = np.einsum("ij,ij->i", w, axis) / np.maximum(dist, 1e-12)
+    beta = np.arccos(np.clip(cosb, -1, 1))
+    spread = np.arcsin(np.clip(radius / np.maximum(dist, 1e-12), 0, 1))
+    return (dist <= radius) | (beta <= half + spread + 1e-6)
+
+
+def _candidate_pairs(views, samples, conf: PairsConfig, block: int = 512):
+    """Pairs (i < j) that may pass the exact test, in blocks of i: an iterator of (I, J) arrays.
+
+    A pair is kept by the exact test only if each view sees some of the other's samples (overlap
+    >= min_overlap > 0 both ways) and their axes are within ``max_angle_deg``. A sample s_j of
+    view j inside view i's image lies in i's cone (half-angle t_i to the widest image corner), and
+    s_j is within R_j (the farthest sample, ~ the largest depth) of j's centre; likewise for i.
+    With d = c_j - c_i and L = |d| this gives d.a_i >= (L - R_j) cos t_i - R_j and
+    -d.a_j >= (L - R_i) cos t_j - R_i; their sum is at most L |a_i - a_j| <= 2 L sin(max_angle / 2),
+    so  L <= 2 R / (cos t - sin(max_angle / 2))  with R the largest reach and t the widest cone.
+    Candidates are the centres within that radius (a cKDTree), then the axis angle, then whether
+    each view's sample ball can meet the other's cone at all. When the radius is unbounded
+    (wide cones, large angles) or min_overlap <= 0 every pair of each block is a candidate.
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(views)
+    centres, axes, half, reach = _frustum_bounds(views, samples)
+    mids = np.stack([s.mean(0) for s in samples])
+    balls = np.array([np.linalg.norm(s - m, axis=1).max() for s, m in zip(samples, mids)])
+    denom = np.cos(half.max()) - np.sin(np.radians(min(conf.max_angle_deg, 180.0)) / 2)
+    prune = conf.min_overlap > 0
+    radius = 2 * reach.max() / denom * (1 + 1e-9) + 1e-9 if prune and denom > 0 else np.inf
+    tree = cKDTree(centres) if np.isfinite(radius) else None
+    cos_max = np.cos(np.radians(conf.max_angle_deg)) - 1e-9
+    for start in range(0, n, block):
+        rows = np.arange(start, min(n, start + block))
+        if tree is None:
+            I, J = np.triu_indices(n, 1)
+            keep = (I >= start) & (I < rows[-1] + 1)
+            I, J = I[keep], J[keep]
+        else:
+            near = tree.query_ball_point(centres[rows], radius)
+            I = np.repeat(rows, [len(x) for x in near])
+            J = np.concatenate([np.asarray(x, np.int64) for x in near]) if len(I) else np.zeros(0, np.int64)
+            keep = J > I
+            I, J = I[keep], J[keep]
+        keep = np.einsum("ij,ij->i", axes[I], axes[J]) >= cos_max
+        I, J = I[keep], J[keep]
+        if prune:
+            keep = _ball_meets_cone(mids[I], balls[I], centres[J], axes[J], half[J])
+            keep &= _ball_meets_cone(mids[J], balls[J], centres[I], axes[I], half[I])
+            I, J = I[keep], J[keep]
+        yield I, J
+
+
+def _top_per_row(rows, cols, vals, k):
+    """Keep each row's k best (value descending, then column) of sparse (row, col, value) triples."""
+    order = np.lexsort((cols, -vals, rows))
+    rows, cols, vals = rows[order], cols[order], vals[order]
+    first = np.searchsorted(rows, rows, side="left")
+    keep = np.arange(len(rows)) - first < k
+    return rows[keep], cols[keep], vals[keep]
 
 
 def pairs_from_poses(views: Sequence, out_path=None, conf: Optional[PairsConfig] = None) -> list[tuple[str, str]]:
     """Covisible pairs of posed images: for each image its ``num_neighbors`` best partners by
     symmetric frustum overlap (min of both directions), among those within ``max_angle_deg`` of
     viewing direction and with overlap >= ``min_overlap``. Each unordered pair is listed once, in
-    the order of ``views``. Written as an hloc pairs file when ``out_path`` is given."""
+    the order of ``views``. Written as an hloc pairs file when ``out_path`` is given.
+
+    The exact overlap is computed only for candidate pairs that can pass it (:func:`_candidate_pairs`:
+    nearby centres, close axes, frusta that can meet), so the cost is ~N x the neighbours within
+    reach rather than N^2, and memory stays ~N x num_neighbors; the pairs equal those of the dense
+    test over every pair (:func:`_overlap_matrix`)."""
+    conf = conf or PairsConfig()
+    n = len(views)
+    samples = _view_samples(views, conf)
+    stack = np.stack(samples) if n else np.zeros((0, 0, 3))
+    dirs = np.stack([v.cam_from_world[2, :3] for v in views]) if n else np.zeros((0, 3))
+    k = conf.num_neighbors
+    rows = np.zeros(0, np.int64)
+    cols = np.zeros(0, np.int64)
+    vals = np.zeros(0)
+    n_cand = 0
+    for I, J in _candidate_pairs(views, samples, conf) if n > 1 else ():
+        n_cand += len(I)
+        ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", dirs[I], dirs[J]), -1, 1)))
+        I, J = I[ang <= conf.max_angle_deg], J[ang <= conf.max_angle_deg]
+        ov_ij = np.empty(len(I))
+        ov_ji = np.empty(len(I))
+        for j in np.unique(J):  # i's samples seen by j
+            sel = J == j
+            ov_ij[sel] = _overlap_from(stack[I[sel]], views[j])
+        for i in np.unique(I):  # j's samples seen by i
+            sel = I == i
+            ov_ji[sel] = _overlap_from(stack[J[sel]], views[i])
+        sym = np.minimum(ov_ij, ov_ji)
+        ok = sym >= conf.min_overlap
+        I, J, sym = I[ok], J[ok], sym[ok]
+        rows, cols, vals = np.concatenate([rows, I, J]), np.concatenate([cols, J, I]), np.concatenate([vals, sym, sym])
+        rows, cols, vals = _top_per_row(rows, cols, vals, k)
+    rows, cols, _ = _top_per_row(rows, cols, vals, k)
+    chosen = set(zip(np.minimum(rows, cols).tolist(), np.maximum(rows, cols).tolist()))
+    pairs = [(views[i].name, views[j].name) for i, j in sorted(chosen)]
+    logger.info("%d covisible pairs among %d posed images (%d candidate pairs tested).", len(pairs), n, n_cand)
+    if out_path is not None:
+        hloc_io.write_pairs(out_path, pairs)
+    return pairs
+
+
+def _pairs_from_poses_dense(views: Sequence, conf: Optional[PairsConfig] = None) -> list[tuple[str, str]]:
+    """The former all-pairs :func:`pairs_from_poses` (O(N^2) projections): the reference in tests
+    and benchmarks."""
     conf = conf or PairsConfig()
     n = len(views)
     ov = _overlap_matrix(views, conf)
@@ -276,11 +520,7 @@ def pairs_from_poses(views: Sequence, out_path=None, conf: Optional[PairsConfig]
         cand = cand[np.lexsort((cand, -sym[i, cand]))][: conf.num_neighbors]
         for j in cand:
             chosen.add((min(i, j), max(i, j)))
-    pairs = [(views[i].name, views[j].name) for i, j in sorted(chosen)]
-    logger.info("%d covisible pairs among %d posed images.", len(pairs), n)
-    if out_path is not None:
-        hloc_io.write_pairs(out_path, pairs)
-    return pairs
+    return [(views[i].name, views[j].name) for i, j in sorted(chosen)]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -325,28 +565,59 @@ def mutual_nn_ratio(desc0: np.ndarray, desc1: np.ndarray, conf: Optional[MatchCo
 
 
 class _DescriptorCache:
-    def __init__(self, features_h5, max_items: int = 256):
+    """Unit descriptors by image name, least recently used dropped first; at most ``max_items``
+    images and ``max_bytes``. ``reads`` counts the file reads."""
+
+    def __init__(self, features_h5, max_items: int = 256, max_bytes: int = 1 << 30):
+        from collections import OrderedDict
+
         self.path = Path(features_h5)
         self.max_items = max_items
-        self.items: dict[str, np.ndarray] = {}
+        self.max_bytes = max_bytes
+        self.items: "OrderedDict[str, np.ndarray]" = OrderedDict()
+        self.nbytes = 0
+        self.reads = 0
 
     def __call__(self, name: str) -> np.ndarray:
-        if name not in self.items:
-            if len(self.items) >= self.max_items:
-                self.items.pop(next(iter(self.items)))
-            d = hloc_io.read_features(self.path, name)["descriptors"]
-            d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-            self.items[name] = d
-        return self.items[name]
+        if name in self.items:
+            self.items.move_to_end(name)
+            return self.items[name]
+        d = hloc_io.read_features(self.path, name)["descriptors"]
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        self.reads += 1
+        while self.items and (len(self.items) >= self.max_items or self.nbytes + d.nbytes > self.max_bytes):
+            self.nbytes -= self.items.popitem(last=False)[1].nbytes
+        self.items[name] = d
+        self.nbytes += d.nbytes
+        return d
 
 
-def match_features(pairs, features_h5, out_h5, conf: Optional[MatchConfig] = None, overwrite: bool = False, chunk: int = 64) -> Path:
+def _match_schedule(pairs: Sequence, block: int = 64) -> list:
+    """``pairs`` reordered so that a cache of ``2 * block`` images reads each image at most once per
+    block pair it is in: images are numbered in name order (a sequence's frames stay together),
+    grouped in blocks of ``block``, and the pairs sorted by (block of the lower number, block of
+    the higher, lower, higher). An image is then read at most min(its pairs, 2 x blocks) times,
+    once for pairs between nearby frames, whatever order the pairs came in."""
+    idx = {n: i for i, n in enumerate(sorted({n for p in pairs for n in p}))}
+
+    def key(p):
+        i, j = sorted((idx[p[0]], idx[p[1]]))
+        return i // block, j // block, i, j
+
+    return sorted(pairs, key=key)
+
+
+def match_features(pairs, features_h5, out_h5, conf: Optional[MatchConfig] = None, overwrite: bool = False, chunk: int = 64,
+                   block: int = 64, max_cache_bytes: int = 1 << 30) -> Path:
     """Match the descriptors of image pairs into an hloc ``matches.h5``.
 
     Args:
         pairs: a pairs file or a list of (name0, name1); a pair already in ``out_h5`` (either order,
             either naming) or repeated reversed in the list is matched once.
         features_h5: features of every paired image.
+        block, max_cache_bytes: the pairs are matched in :func:`_match_schedule`'s order with up
+            to ``2 * block`` images' descriptors (and at most ``max_cache_bytes``) in memory. torch's
+            matmul already uses every core, so pairs are matched one after the other.
 
     Each pair is stored as ``names_to_pair(name0, name1)`` with ``matches0`` int32 indexed by
     name0's keypoints (-1 = unmatched) and ``matching_scores0`` float32 (cosine similarity).
@@ -378,7 +649,8 @@ def match_features(pairs, features_h5, out_h5, conf: Optional[MatchConfig] = Non
     if not todo:
         return out_h5
     logger.info("Matching %d pairs (%s).", len(todo), conf.name)
-    desc = _DescriptorCache(features_h5)
+    todo = _match_schedule(todo, block)
+    desc = _DescriptorCache(features_h5, max_items=2 * block, max_bytes=max_cache_bytes)
     for start in tqdm(range(0, len(todo), chunk), desc="match", unit=f"x{chunk}pairs", disable=len(todo) <= chunk):
         with h5_update(out_h5, fresh=fresh) as fd:
             fd.attrs[STAMP_ATTR] = stamp.to_json()

@@ -174,8 +174,32 @@ def read_global(path, names: Sequence[str]) -> np.ndarray:
     return np.stack(out)
 
 
-def top_k(query_desc: np.ndarray, db_desc: np.ndarray, k: int) -> np.ndarray:
-    """(Q, min(k, N)) indices of the most similar database descriptors, best first (ties: lower index)."""
+def top_k(query_desc: np.ndarray, db_desc: np.ndarray, k: int, block: int = 256) -> np.ndarray:
+    """(Q, min(k, N)) indices of the most similar database descriptors, best first (ties: lower index).
+
+    Queries go ``block`` at a time (memory ~ block x N similarities) and each row is only partly
+    sorted: every score >= the row's k-th best (ties included) is ranked, the rest never.
+    """
+    n = db_desc.shape[0]
+    k = min(k, n)
+    out = np.zeros((len(query_desc), k), np.int64)
+    if k == 0:
+        return out
+    for start in range(0, len(query_desc), block):
+        sim = query_desc[start : start + block] @ db_desc.T
+        kth = np.partition(sim, n - k, axis=1)[:, n - k]  # the k-th largest of each row
+        rows, cols = np.nonzero(sim >= kth[:, None])
+        vals = sim[rows, cols]
+        order = np.lexsort((cols, -vals, rows))
+        rows, cols = rows[order], cols[order]
+        rank = np.arange(len(rows)) - np.searchsorted(rows, rows, side="left")
+        keep = rank < k
+        out[start + rows[keep], rank[keep]] = cols[keep]
+    return out
+
+
+def _top_k_full_sort(query_desc: np.ndarray, db_desc: np.ndarray, k: int) -> np.ndarray:
+    """The former :func:`top_k` (a full Q x N sort): the reference in tests and benchmarks."""
     sim = query_desc @ db_desc.T
     order = np.lexsort((np.broadcast_to(np.arange(sim.shape[1]), sim.shape), -sim), axis=1)
     return order[:, : min(k, sim.shape[1])]
@@ -189,6 +213,7 @@ def pairs_from_retrieval(
     conf: Optional[RetrievalConfig] = None,
     global_h5=None,
     overwrite: bool = False,
+    block: int = 256,
 ) -> Path:
     """Pair each query with its ``num_retrieved`` most similar database images; hloc pairs file.
 
@@ -210,13 +235,16 @@ def pairs_from_retrieval(
     codebook = load_or_train_codebook(features_h5, db_names, out_pairs.parent / f"codebook-{tag}.npz", conf, overwrite)
     # a new codebook invalidates stored global descriptors
     extract_global(features_h5, list(db_names) + list(query_names), global_h5, codebook, conf, overwrite=True)
-    qd = read_global(global_h5, query_names)
     dd = read_global(global_h5, db_names)
-    idx = top_k(qd, dd, conf.num_retrieved)
-    pairs = [(q, db_names[j]) for q, row in zip(query_names, idx) for j in row]
+    pairs, per_query = [], 0
+    for start in range(0, len(query_names), block):  # queries in blocks: memory ~ database + block x N
+        qn = list(query_names[start : start + block])
+        idx = top_k(read_global(global_h5, qn), dd, conf.num_retrieved, block)
+        pairs += [(q, db_names[j]) for q, row in zip(qn, idx) for j in row]
+        per_query = idx.shape[1]
     hloc_io.write_pairs(out_pairs, pairs)
     write_stamp(out_pairs, stamp)
-    logger.info("Retrieved %d database images for each of %d queries.", idx.shape[1], len(query_names))
+    logger.info("Retrieved %d database images for each of %d queries.", per_query, len(query_names))
     return out_pairs
 
 
