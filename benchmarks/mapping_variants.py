@@ -1,7 +1,7 @@
 """What each mapping setting is worth: lipmap maps of one scene with named overrides of a preset, side by side.
 
     python benchmarks/mapping_variants.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
-        --scene redkitchen --out OUT [--preset fast] [--base NAME] NAME='{"line_weight": 1.0}' NAME2='{...}' ...
+        --scene redkitchen --out OUT [--preset fast] [--base NAME] [--tag TAG] NAME='{"line_weight": 1.0}' NAME2='{...}' ...
 
 Each variant is mapped into OUT/<NAME> (reused when a map made with the same settings is there). A variant that
 changes only extraction-side settings (``extract``, ``plane_depth_tol``, ``on_plane_lines``, ``lift``) starts
@@ -52,6 +52,7 @@ def main(argv=None):
     ap = results.scene_parser(__doc__)
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--base", default=None, help="the variant whose planes extraction-only variants reuse")
+    ap.add_argument("--tag", default="", help="suffix of the results file, so that another question keeps its own table")
     ap.add_argument("variants", nargs="+", help="NAME=JSON overrides of the preset ('{}' for the preset itself)")
     args = ap.parse_args(argv)
     scene = load_scene(args.dataset, args.root, args.scene)
@@ -77,7 +78,7 @@ def main(argv=None):
                      f"{ps.get('depth_error_median_cm', float('nan')):.1f} cm / {100 * ps.get('depth_error_over_5cm', float('nan')):.0f} %",
                      "" if t is None or (args.base and set(over) <= EXTRACTION_ONLY and over) else f"{t:.0f} s planes"])
         print("| " + " | ".join(map(str, rows[-1])) + " |", flush=True)
-    results.write(f"mapping-variants-{scene.dataset}-{scene.name}", {"preset": args.preset, "variants": data,
+    results.write(f"mapping-variants-{scene.dataset}-{scene.name}" + (f"-{args.tag}" if args.tag else ""), {"preset": args.preset, "variants": data,
                                                                       "table": {"header": HEADER, "rows": rows}})
 
 
