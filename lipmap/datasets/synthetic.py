@@ -87,10 +87,10 @@ SYNTH_PRESETS = {
 # "small" with corrupted depth (2 % smooth per-frame warp + Kinect-like per-pixel noise): the setting of
 # the paper's claim that planes average depth error where lifting lines with the depth cannot
 SYNTH_PRESETS["small-noisy-depth"] = replace(SYNTH_PRESETS["small"], name="small-noisy-depth", depth_warp_sigma=0.02)
-# several rooms at "default"'s resolution and texture density (issue #16): "medium" for CI-scale checks
+# several rooms at "default"'s resolution and texture density (issue #16): "medium" (4-7 min) for CI-scale checks
 # (minutes), "large" for the benchmark (1,500 mapping + 500 query frames; ~1.5 s a frame per worker on a
 # shared 2-core machine, about 50 min with one)
-SYNTH_PRESETS["medium"] = replace(SYNTH_PRESETS["default"], name="medium", n_rooms=2, n_mapping=300, n_query=100)
+SYNTH_PRESETS["medium"] = replace(SYNTH_PRESETS["default"], name="medium", n_rooms=2, n_mapping=200, n_query=60)
 SYNTH_PRESETS["large"] = replace(SYNTH_PRESETS["default"], name="large", n_rooms=5, n_mapping=1500, n_query=500)
 ROOM_GAP = 1.0  # m of empty space between neighbouring rooms of a multi-room scene
 
@@ -565,7 +565,7 @@ def add_synth_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=sorted(SYNTH_PRESETS), default="small",
                    help="small: 320x240, 30+20 frames (seconds); default: 640x480, 100+50 frames; "
                         "small-noisy-depth: small with predicted-depth-like errors in the depth files; "
-                        "medium: 2 rooms, 640x480, 300+100 frames (minutes); large: 5 rooms, 640x480, "
+                        "medium: 2 rooms, 640x480, 200+60 frames (minutes); large: 5 rooms, 640x480, "
                         "1500+500 frames (about 1.5 s a frame per worker)")
     p.add_argument("--overwrite", action="store_true", help="regenerate even if the scene exists")
     p.add_argument("--workers", type=int, default=1,
