@@ -353,9 +353,100 @@ class TestReaderAndCli:
         parser = argparse.ArgumentParser()
         add_synth_parser(parser.add_subparsers(dest="cmd"))
         args = parser.parse_args(["synth", "--out", str(synthetic_root), "--seed", "3"])
-        assert (args.seed, args.preset, args.overwrite) == (3, "small", False)
+        assert (args.seed, args.preset, args.overwrite, args.workers) == (3, "small", False, 1)
+        big = parser.parse_args(["synth", "--out", "x", "--preset", "large", "--workers", "2"])
+        assert (big.preset, big.workers) == ("large", 2)
         assert args.func(args) == scene_dir  # exists: skipped, path printed
         assert capsys.readouterr().out.strip() == str(scene_dir)
         assert args.func is cli_synth
         with pytest.raises(SystemExit):
             parser.parse_args(["synth", "--out", "x", "--preset", "huge"])
+
+
+# tiny multi-room scene: the "medium" preset (2 rooms) at thumbnail size, 4+3 and 4+2 frames per room
+MULTI = {"preset": "medium", "width": 80, "height": 60, "fx": 65.625, "fy": 65.625, "cx": 40.0, "cy": 30.0,
+         "n_mapping": 8, "n_query": 5, "texels_per_m": 64.0}
+
+
+@pytest.fixture(scope="module")
+def multi_dir(tmp_path_factory) -> Path:
+    return generate_scene(tmp_path_factory.mktemp("multi"), seed=5, preset=MULTI)
+
+
+class TestMultiRoom:
+    def test_presets(self):
+        large, medium = SYNTH_PRESETS["large"], SYNTH_PRESETS["medium"]
+        assert (large.n_rooms, large.n_mapping, large.n_query, large.width, large.height) == (5, 1500, 500, 640, 480)
+        assert (large.fx, large.fy, large.cx, large.cy) == (525.0, 525.0, 320.0, 240.0)
+        assert medium.n_rooms == 2 and (medium.width, medium.height) == (640, 480)
+        assert all(SYNTH_PRESETS[k].n_rooms == 1 for k in ("small", "default", "small-noisy-depth"))
+        with pytest.raises(InputError, match="at least one mapping and one query frame"):
+            generate_scene(Path("unused"), preset={**MULTI, "n_query": 1})
+
+    def test_layout_and_splits(self, multi_dir):
+        meta = json.loads((multi_dir / "scene.json").read_text())
+        assert meta["n_rooms"] == 2 and meta["preset"] == "medium"
+        assert (multi_dir / "TrainSplit.txt").read_text().split() == ["sequence1", "sequence3"]
+        assert (multi_dir / "TestSplit.txt").read_text().split() == ["sequence2", "sequence4"]
+        counts = {seq: len(_frames(multi_dir, seq)) for seq in ("seq-01", "seq-02", "seq-03", "seq-04")}
+        assert counts == {"seq-01": 4, "seq-02": 3, "seq-03": 4, "seq-04": 2}
+        r0, r1 = meta["rooms"]
+        assert r0["offset"] == [0.0, 0.0, 0.0]
+        assert r1["offset"][0] == pytest.approx(r0["size"][0] + meta["room_gap"]) and meta["room_gap"] > 0
+        assert meta["room_size"][0] == pytest.approx(r1["offset"][0] + r1["size"][0])
+        assert r1["surfaces"] == [r0["surfaces"][1], meta["n_surfaces"]]
+        rows = json.loads((multi_dir / "surfaces.json").read_text())["surfaces"]
+        assert [r["room"] for r in rows] == [0] * r0["surfaces"][1] + [1] * (meta["n_surfaces"] - r0["surfaces"][1])
+
+    def test_cameras_in_own_room_and_depth_matches_mesh(self, multi_dir):
+        meta = json.loads((multi_dir / "scene.json").read_text())
+        camera = Camera(meta["width"], meta["height"], tuple(meta["intrinsics"]))
+        mesh = trimesh.load(multi_dir / "mesh.ply", process=False)
+        assert np.allclose(mesh.bounds, [[0, 0, 0], meta["room_size"]], atol=1e-6)  # the mesh covers all rooms
+        from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+        ray = RayMeshIntersector(mesh)
+        rays = camera.pixel_rays().reshape(-1, 3)
+        for r in meta["rooms"]:
+            lo = np.array(r["offset"])
+            hi = lo + r["size"]
+            for seq in (r["mapping_sequence"], r["query_sequence"]):
+                for pose in _frames(multi_dir, f"seq-{seq:02d}"):
+                    c = np.loadtxt(pose)[:3, 3]
+                    assert np.all(c > lo + 0.3) and np.all(c < hi - 0.3), f"{pose} is outside room {r['index']}"
+                    T = _cam_from_world(pose)
+                    depth = read_depth(Path(f"{_stem(pose)}.depth.png")).reshape(-1)
+                    assert (depth >= 0.499).all()
+                    d_world = rays @ T[:3, :3]
+                    loc, idx, _ = ray.intersects_location(np.tile(c, (len(rays), 1)), d_world, multiple_hits=False)
+                    assert len(idx) == len(rays)
+                    assert np.all(loc >= lo - 1e-6) and np.all(loc <= hi + 1e-6)  # never sees another room
+                    z = (loc @ T[:3, :3].T + T[:3, 3])[:, 2]
+                    err = np.abs(z - depth[idx])
+                    assert np.percentile(err, 99) < 1e-3, (pose, np.percentile(err, 99))
+
+    def test_load_scene(self, multi_dir):
+        from lipmap.datasets import load_scene
+
+        scene = load_scene("synthetic", multi_dir.parent, multi_dir.name)
+        assert [v.name for v in scene.mapping] == [f"seq-{s:02d}/frame-{i:06d}.color.png"
+                                                   for s in (1, 3) for i in range(4)]
+        assert [v.name for v in scene.query][-2:] == ["seq-04/frame-000000.color.png", "seq-04/frame-000001.color.png"]
+        assert len(scene.query) == 5 and scene.gt_mesh == multi_dir / "mesh.ply"
+        v = scene.mapping[5]
+        assert np.allclose(v.cam_from_world, np.linalg.inv(np.loadtxt(multi_dir / "seq-03/frame-000001.pose.txt")),
+                           atol=1e-9)
+
+    def test_rooms_do_not_depend_on_room_count(self, multi_dir, tmp_path):
+        """Room k has its own random streams: a 3-room scene starts with the 2-room scene's rooms, and the
+        frames of room 0 do not change."""
+        three = generate_scene(tmp_path, seed=5, preset={**MULTI, "n_rooms": 3, "n_mapping": 12, "n_query": 7})
+        rows2 = json.loads((multi_dir / "surfaces.json").read_text())["surfaces"]
+        rows3 = json.loads((three / "surfaces.json").read_text())["surfaces"]
+        assert rows3[: len(rows2)] == rows2 and len(rows3) > len(rows2)
+        for f in ("seq-01/frame-000002.color.png", "seq-03/frame-000003.pose.txt", "seq-04/frame-000001.depth.png"):
+            assert (three / f).read_bytes() == (multi_dir / f).read_bytes()
+
+    def test_workers_same_files(self, multi_dir, tmp_path):
+        par = generate_scene(tmp_path, seed=5, preset=MULTI, workers=2)
+        assert TestDeterminism._all_files(par) == TestDeterminism._all_files(multi_dir)
