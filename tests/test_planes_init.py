@@ -174,3 +174,20 @@ def test_lazy_frames_fuse_like_loaded_ones(synthetic_root):
     V2, F2 = fuse_tsdf(lazy, conf)
     np.testing.assert_array_equal(F1, F2)
     np.testing.assert_array_equal(V1, V2)
+
+
+def test_init_fuses_at_most_max_frames_evenly_spread(synthetic_root, monkeypatch):
+    import lipmap.planes.init as init_mod
+    from lipmap.datasets import load_scene
+
+    views = load_scene("synthetic", synthetic_root, "room-s3").mapping[:9]
+    fused = []
+    real = init_mod.fuse_tsdf
+
+    def spy(frames, conf, device=None):
+        fused.append([f.view.name for f in frames])
+        return real(frames, conf, device)
+
+    monkeypatch.setattr(init_mod, "fuse_tsdf", spy)
+    init_mod.init_planes(views, PlaneInitConfig(voxel_size=0.05, n_planes=100, max_frames=3))
+    assert fused == [[views[0].name, views[4].name, views[8].name]]

@@ -31,6 +31,7 @@ class PlaneInitConfig:
     max_depth: float = 6.0  # metres; farther depth is ignored (sensor noise grows with depth^2)
     bounds_percentile: float = 0.5  # scene box = [p, 100 - p] percentiles of the fused points, plus a margin
     max_voxels: int = 40_000_000  # coarsen the voxels if the scene box would need more
+    max_frames: int = 200  # fuse at most this many views, evenly spread (0 = all): the init needs coverage, not every frame
     radius_scale: float = 0.3  # plane radius = this x mean centroid-to-vertex distance
     min_component_faces: int = 20  # drop isolated mesh fragments smaller than this before decimating
     manhattan: bool = False  # in-plane axes from the scene's dominant directions (else the world axes)
@@ -412,10 +413,15 @@ def init_planes(views, conf: Optional[PlaneInitConfig] = None, device=None, fram
     """Planes initialized from the views' depth (TSDF -> mesh -> decimation -> one plane per face).
 
     ``frames`` (a :class:`DepthFrame` sequence at the fusion resolution) may be given instead of ``views``;
-    from ``views`` the depth is read one frame at a time (:class:`LazyDepthFrames`).
+    from ``views`` the depth is read one frame at a time (:class:`LazyDepthFrames`), of at most
+    ``conf.max_frames`` views evenly spread.
     """
     conf = conf or PlaneInitConfig()
     if frames is None:
+        views = [v for v in views if v.depth_path is not None and v.cam_from_world is not None]
+        if conf.max_frames and len(views) > conf.max_frames:
+            logger.info("plane init: fusing %d of %d views, evenly spread", conf.max_frames, len(views))
+            views = [views[i] for i in np.unique(np.linspace(0, len(views) - 1, conf.max_frames).round().astype(int))]
         frames = LazyDepthFrames(views, conf.depth_downscale, conf.target_width)
     V, F = fuse_tsdf(frames, conf, device=device)
     logger.info("plane init: fused mesh %d vertices, %d faces", len(V), len(F))
