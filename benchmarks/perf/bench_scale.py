@@ -157,6 +157,72 @@ def _summary(rows: list) -> dict:
     return out
 
 
+# 7-Scenes frames per scene (mapping = TrainSplit sequences, queries = TestSplit), 1,000 per sequence
+SEVEN_SCENES = {"chess": (4000, 2000), "fire": (2000, 2000), "heads": (1000, 1000), "office": (6000, 4000),
+                "pumpkin": (4000, 2000), "redkitchen": (7000, 5000), "stairs": (2000, 1000)}
+FULL_RATE_STEP = 10  # the RedKitchen mini keeps every 10th frame of the 30 Hz sequence
+
+
+def keyframe_rate(root) -> float:
+    """Keyframes per frame of a 30 Hz 7-Scenes sequence with the default settings: the RedKitchen mini's poses
+    (every 10th frame) interpolated back to every frame (linear centres, slerped rotations)."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from lipmap.datasets import load_scene
+    from lipmap.mapping.keyframes import select_keyframes
+    from lipmap.poses import invert_T, make_T
+
+    views = load_scene("7scenes", root, "redkitchen").mapping
+    T_wc = np.stack([invert_T(v.cam_from_world) for v in views])
+    t_in = np.arange(len(views)) * FULL_RATE_STEP
+    t_out = np.arange(t_in[-1] + 1)
+    rot = Slerp(t_in, Rotation.from_matrix(T_wc[:, :3, :3]))(t_out).as_matrix()
+    ctr = np.stack([np.interp(t_out, t_in, T_wc[:, i, 3]) for i in range(3)], 1)
+    dense = [replace(views[0], name=f"seq-01/frame-{i:06d}.color.png", cam_from_world=invert_T(make_T(rot[i], ctr[i])))
+             for i in range(len(t_out))]
+    return len(select_keyframes(dense)) / len(dense)
+
+
+def estimate(rows: list, kf_rate: float) -> dict:
+    """The full 7-Scenes reproduction on this machine, from the measured stages: line mapping as a fixed part plus
+    a part per keyframe (least squares over the mapping runs), the point map per mapping image, and the query side
+    per query (both from the localization runs)."""
+    total = sorted((r["n_keyframes"], r["seconds"]) for r in rows if r["stage"] == "mapping_total")
+    if len(total) < 2:
+        return {}
+    k, sec = np.array(total, dtype=float).T
+    per_kf, fixed = np.polyfit(k, sec, 1)
+    loc = [r for r in rows if r["queries"]]
+    point_map = next(r for r in loc if r["stage"] == "point_map")
+    per_map_image = point_map["seconds"] / point_map["views"]
+    per_query = max(r["seconds"] for r in loc if r["stage"] == "per_query")
+    scenes = {}
+    for name, (n_map, n_query) in SEVEN_SCENES.items():
+        kf = kf_rate * n_map
+        scenes[name] = {"keyframes": round(kf), "line_map_h": (fixed + per_kf * kf) / 3600,
+                        "point_map_h": per_map_image * n_map / 3600, "queries_h": per_query * n_query / 3600}
+    tot = {key: sum(s[key] for s in scenes.values()) for key in ("line_map_h", "point_map_h", "queries_h")}
+    return {"keyframes_per_frame": round(kf_rate, 4), "line_map_fixed_s": round(fixed, 1),
+            "line_map_per_keyframe_s": round(per_kf, 3), "point_map_per_image_s": round(per_map_image, 3),
+            "per_query_s": round(per_query, 3), "scenes": scenes, "total_h": {k: round(v, 2) for k, v in tot.items()},
+            "all_h": round(sum(tot.values()), 2)}
+
+
+def _tables(rows: list, est: dict) -> tuple:
+    header = ["views", "queries", "stage", "seconds", "peak RSS (MB)", "keyframes", "lines", "F@5cm"]
+    table = {"header": header, "rows": [[r["views"], r["queries"] or "", r["stage"], r["seconds"], r["peak_rss_mb"],
+                                         r.get("n_keyframes", ""), r.get("n_lines", ""), r.get("f@5cm", "")] for r in rows]}
+    if not est:
+        return table, None
+    eh = ["scene", "mapping frames", "keyframes", "line map (h)", "point map (h)", "queries (h)"]
+    erows = [[n, SEVEN_SCENES[n][0], s["keyframes"], f"{s['line_map_h']:.2f}", f"{s['point_map_h']:.2f}",
+              f"{s['queries_h']:.2f}"] for n, s in est["scenes"].items()]
+    t = est["total_h"]
+    erows.append(["**all 7 scenes**", sum(v[0] for v in SEVEN_SCENES.values()), sum(s["keyframes"] for s in est["scenes"].values()),
+                  f"{t['line_map_h']:.1f}", f"{t['point_map_h']:.1f}", f"{t['queries_h']:.1f} (total {est['all_h']:.1f} h)"])
+    return table, {"header": eh, "rows": erows}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--root", type=Path, required=True)
@@ -167,6 +233,8 @@ def main(argv=None):
     ap.add_argument("--loc-views", type=int, default=100)
     ap.add_argument("--preset", default="fast", help="mapping preset (the default is eval's; 'quick' for a smoke run)")
     ap.add_argument("--no-write", action="store_true", help="print only (smoke runs)")
+    ap.add_argument("--sevenscenes-root", type=Path, default=REPO.parent / "shared/data/7scenes-redkitchen-mini",
+                    help="the RedKitchen mini, whose poses give the keyframe rate of the full-size estimate")
     ap.add_argument("--worker", choices=["map", "loc"], help=argparse.SUPPRESS)
     ap.add_argument("--n", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -180,11 +248,16 @@ def main(argv=None):
     rows = [r for n in args.views for r in _run_worker(args, "map", n)]
     rows += [r for n in args.queries for r in _run_worker(args, "loc", n)]
     summary = _summary(rows)
-    print(json.dumps(summary, indent=1))
+    est = estimate(rows, keyframe_rate(args.sevenscenes_root)) if args.sevenscenes_root.exists() else {}
+    table, est_table = _tables(rows, est)
+    print(json.dumps({**summary, "estimate": est}, indent=1))
     if args.no_write:
         return
     (results.RESULTS / "perf-scale.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
-    results.write("perf-scale", {"scene": f"{args.root.name}/{args.scene}", "rows": rows, "summary": summary})
+    results.write("perf-scale", {"scene": f"{args.root.name}/{args.scene}", "rows": rows, "summary": summary,
+                                 "table": table})
+    if est_table:
+        results.write("perf-scale-estimate", {"estimate": est, "table": est_table})
 
 
 if __name__ == "__main__":
