@@ -93,3 +93,16 @@ def test_a_fixed_iteration_budget_is_sampled_over_the_views_in_epochs(synthetic_
     planes_b, _ = optimize_planes(views, init, PlaneOptConfig.preset("fast", iterations=8, progress=False))
     for a, b in zip(planes_e.tensors(), planes_b.tensors()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_the_fast_budget_caps_large_scenes_and_leaves_small_ones_their_epochs():
+    from lipmap.planes.optimize import PlaneOptConfig, Schedule
+
+    fast = PlaneOptConfig.preset("fast-lines")
+    assert Schedule.of(fast, 30).max_iters == 72 * 30  # the demo's 30 views: 72 passes, as before the budget
+    assert Schedule.of(fast, 50).max_iters == 3600
+    assert Schedule.of(fast, 1500).max_iters == 3600 and Schedule.of(fast, 1500).n_epochs == 3
+    from lipmap.errors import InputError
+
+    with pytest.raises(InputError):
+        Schedule.of(PlaneOptConfig(epochs=0, iterations=0), 10)

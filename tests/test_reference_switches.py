@@ -7,7 +7,7 @@ import torch
 from lipmap.mapping.assign import best_edges
 from lipmap.mapping.losses import line_loss_terms
 from lipmap.mapping.pipeline import get_conf
-from lipmap.planes.optimize import PlaneOptConfig, ViewTarget, _apply_step, _EpochStats, plane_loss
+from lipmap.planes.optimize import PlaneOptConfig, Schedule, ViewTarget, _apply_step, _EpochStats, plane_loss
 from lipmap.planes.render import RenderOutput
 from lipmap.scene import Camera
 from lipmap.testing import rect
@@ -78,7 +78,9 @@ def test_paper_preset_follows_the_reference_code():
     conf = get_conf("paper")
     planes = PlaneOptConfig.preset(conf.planes)
     assert (planes.split_grad_reduce, planes.depth_loss_on_rendered, planes.reset_moments_on_recenter) == ("max", True, True)
-    assert (planes.lr_center, planes.lr_quat, planes.lr_radii, planes.epochs) == (1e-3, 1e-3, 1e-3, 60)
+    assert (planes.lr_center, planes.lr_quat, planes.lr_radii) == (1e-3, 1e-3, 1e-3)
+    # max_total_iters 6,000 whatever the number of views (60 epochs of the reference's 100 views)
+    assert (Schedule.of(planes, 100).max_iters, Schedule.of(planes, 30).max_iters, Schedule.of(planes, 7000).max_iters) == (6000,) * 3
     assert conf.max_assign_frac == 0 and conf.euc_inside_only and conf.extract.dist_reduce == "mean"
     assert (conf.line_weight, conf.endpoint_weight, conf.robust_scale, conf.on_plane_lines) == (0.1, 0.5, 0.0, False)
     assert (conf.extract.max_dist, conf.extract.max_angle) == (1.0, 0.01)

@@ -105,10 +105,19 @@ def worker_loc(args) -> list:
     """Localize ``args.n`` queries against the map of ``args.loc_views`` views; one row per stage."""
     from localization.pipeline import LocalizationConfig, localize_scene
 
+    import shutil
+
+    from lipmap.mapping.pipeline import map_variant_dir
+
     scene = _scene(args)
     scene = replace(scene, mapping=evenly(scene.mapping, args.loc_views), query=evenly(scene.query, args.n))
+    conf = LocalizationConfig(mapping=args.preset)
+    # the map of these views was timed by the mapping run: the localization run starts from a copy (same stamp)
+    made, variant = args.work / f"map-{args.loc_views}", map_variant_dir(args.work / "loc", scene, args.preset, conf.map_method)
+    if (made / "linemap.h5").exists() and not variant.exists():
+        shutil.copytree(made, variant)
     clock = Clock()
-    res = localize_scene(scene, args.work / "loc", LocalizationConfig(mapping=args.preset), checkpoint=clock)
+    res = localize_scene(scene, args.work / "loc", conf, checkpoint=clock)
     queries = [e for e in clock.events if e[0] == "query"]
     if len(queries) < 2:
         raise SystemExit(f"{args.work / 'loc'} holds a finished journal for these queries: delete it to time again")
