@@ -32,7 +32,7 @@ from tqdm import tqdm
 from . import logger
 from .errors import InputError
 from .geometry import clip_segments_to_image
-from .imageio import atomic_path, read_color
+from .imageio import atomic_path, commit_batches, read_color
 from .presets import resolve
 
 REFERENCE_SIZE = (640, 480)
@@ -231,8 +231,8 @@ def detect_lines(
             ``image_root`` when given, else by file name).
         out_h5: output file; images already in it are skipped unless ``overwrite``.
         conf: preset name ("lsd", "lsd-fast", "lsd-dense", "lsd-long"), dict of overrides or conf.
-        commit_every: results are written (atomically) every this many images, so an interrupted
-            run keeps what it finished.
+        commit_every: results are written (atomically) every this many images at least (more as the file
+            grows, :func:`lipmap.imageio.commit_batches`), so an interrupted run keeps what it finished.
 
     Returns:
         the path of ``out_h5``.
@@ -250,13 +250,14 @@ def detect_lines(
     attrs = {"detector": conf.name, "conf": conf_json, "pixel_convention": "colmap (pixel centre at i + 0.5)",
              **stamp.h5_attrs()}
     pending, n_lines = {}, []
-    for name, load in tqdm(todo, desc="lines2d", disable=len(todo) < 2):
+    ends = {end for _, end in commit_batches(len(todo), len(done), commit_every)}
+    for i, (name, load) in enumerate(tqdm(todo, desc="lines2d", disable=len(todo) < 2)):
         lines, scores = detect_lines_image(load(), conf)
         if len(lines) == 0:
             logger.warning("No lines detected in %s.", name)
         pending[name] = (lines, scores)
         n_lines.append(len(lines))
-        if len(pending) >= commit_every:
+        if i + 1 in ends:
             _write_groups(out_h5, pending, attrs)
             pending = {}
     if pending or not out_h5.exists():

@@ -29,6 +29,7 @@ from tqdm import tqdm
 from lipmap import logger
 from lipmap.artifacts import STAMP_ATTR, Stamp, reuse, views_key, write_stamp
 from lipmap.errors import InputError
+from lipmap.imageio import commit_batches
 from lipmap.presets import resolve
 
 from . import hloc_io
@@ -298,10 +299,12 @@ def extract_sift(views: Sequence, out_h5, conf: Optional[SiftConfig] = None, ove
                 f", {workers} processes" if device == "cpu" and workers > 1 else "", len(todo))
     stream = _sift_stream(todo, conf, workers, device)
     try:
-        for start in tqdm(range(0, len(todo), chunk), desc="sift", unit=f"x{chunk}img", disable=len(todo) <= chunk):
+        bar = tqdm(total=len(todo), desc="sift", unit="img", disable=len(todo) <= chunk)
+        for start, end in commit_batches(len(todo), len(done), chunk):
             with h5_update(out_h5, fresh=fresh) as fd:
                 fd.attrs[STAMP_ATTR] = stamp.to_json()
-                for v, size, f in itertools.islice(stream, chunk):
+                for v, size, f in itertools.islice(stream, end - start):
+                    bar.update(1)
                     hloc_io.write_features(
                         fd,
                         v.name,
@@ -313,6 +316,7 @@ def extract_sift(views: Sequence, out_h5, conf: Optional[SiftConfig] = None, ove
                         extra={"scales": f["scales"].astype(np.float32), "oris": f["oris"].astype(np.float32)},
                     )
             fresh = False
+        bar.close()
     finally:
         stream.close()  # shuts the workers down, also on an error
     return out_h5
@@ -651,13 +655,16 @@ def match_features(pairs, features_h5, out_h5, conf: Optional[MatchConfig] = Non
     logger.info("Matching %d pairs (%s).", len(todo), conf.name)
     todo = _match_schedule(todo, block)
     desc = _DescriptorCache(features_h5, max_items=2 * block, max_bytes=max_cache_bytes)
-    for start in tqdm(range(0, len(todo), chunk), desc="match", unit=f"x{chunk}pairs", disable=len(todo) <= chunk):
+    bar = tqdm(total=len(todo), desc="match", unit="pair", disable=len(todo) <= chunk)
+    for start, end in commit_batches(len(todo), len(seen) - len(todo), chunk):
         with h5_update(out_h5, fresh=fresh) as fd:
             fd.attrs[STAMP_ATTR] = stamp.to_json()
-            for a, b in todo[start : start + chunk]:
+            for a, b in todo[start:end]:
                 m0, s0 = mutual_nn_ratio(desc(a), desc(b), conf)
                 hloc_io.write_matches(fd, a, b, m0, s0)
+                bar.update(1)
         fresh = False
+    bar.close()
     return out_h5
 
 

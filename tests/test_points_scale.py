@@ -198,3 +198,16 @@ class TestRetrieval:
         d = rng.integers(-3, 4, size=(120, 8)).astype(np.float32)
         d[40:60] = d[0]  # many exact ties
         np.testing.assert_array_equal(top_k(q, d, k, block=block), _top_k_full_sort(q, d, k))
+
+
+def test_commit_batches_cover_the_items_and_copy_linear_bytes():
+    from lipmap.imageio import commit_batches
+
+    assert commit_batches(0) == []
+    assert commit_batches(40, 0, 16) == [(0, 16), (16, 32), (32, 40)]
+    b = commit_batches(7000, 0, 16)
+    assert b[0] == (0, 16) and b[-1][1] == 7000 and all(s1 == e0 for (_, e0), (s1, _) in zip(b, b[1:]))
+    copied = sum(e for _, e in b)  # each commit copies the file as it is after it
+    assert copied <= 6 * 7000 and len(b) < 40
+    # resuming into a file that holds 4,000 items starts with batches of 1,000
+    assert commit_batches(3000, 4000, 16)[0] == (0, 1000)
