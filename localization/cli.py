@@ -91,7 +91,7 @@ def cmd_eval(args):
                            chunk=RayRunner.chunk if args.ray_chunk is None else args.ray_chunk)
     elif args.ray_cpus is not None or args.ray_chunk is not None:
         raise InputError("--ray-cpus and --ray-chunk go with --ray")
-    conf = LocalizationConfig(seed=args.seed, max_point_matches=args.max_point_matches, mapping=args.preset,
+    conf = LocalizationConfig(seed=args.seed, max_point_matches=args.max_point_matches, mapping=_mapping_conf(args),
                               map_method=args.method, points=args.points)
     if args.line_query:
         conf = replace(conf, line_query=replace(LineQueryConfig(), method=args.line_query))
@@ -126,11 +126,12 @@ def cmd_map(args):
 
     from lipmap.datasets.validate import check_scene
 
-    conf = args.preset
+    over = {}
     if args.plane_depth_tol is not None:
         if not args.plane_depth_tol >= 0:
             raise InputError(f"--plane-depth-tol must be >= 0 metres, got {args.plane_depth_tol}")
-        conf = {"preset": args.preset, "plane_depth_tol": args.plane_depth_tol}
+        over["plane_depth_tol"] = args.plane_depth_tol
+    conf = _mapping_conf(args, **over)
     if args.mapping_step < 1:
         raise InputError(f"--mapping-step must be >= 1, got {args.mapping_step}")
     scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source,
@@ -146,6 +147,9 @@ def cmd_map(args):
     if "n_on_plane_lines" in lm.metadata:
         kinds = f" ({lm.metadata['n_edge_lines']} plane edges + {lm.metadata['n_on_plane_lines']} on-plane lines)"
     print(f"{len(lm)} lines{kinds} -> {path}")
+    kf = lm.metadata.get("keyframes")
+    if kf:
+        print(f"keyframes: {kf['n_keyframes']} of {kf['n_views']} mapping views")
     if len(lm):
         print(f"supports: median {np.median(lm.supports[:, 0]):.0f} images, {np.median(lm.supports[:, 1]):.0f} 2D lines per line")
     ps = lm.metadata.get("plane_stats")
@@ -231,8 +235,25 @@ def _add_mapping_args(p, method_default: str):
                         "scenes), paper (reference settings, plane edges only; hours on a CPU)")
     p.add_argument("--method", default=method_default, choices=list(METHODS), help="line map method")
     p.add_argument("--mapping-step", type=int, default=1, help="use every k-th mapping frame")
+    p.add_argument("--keyframes", default=None, metavar="CM,DEG",
+                   help="map the views where the camera moved more than CM centimetres or turned more than DEG "
+                        "degrees since the last one (default 5,5; 0 = every view)")
     p.add_argument("--skip-bad-frames", action="store_true", help="skip unreadable mapping frames (default: stop with an error)")
     p.add_argument("--overwrite", action="store_true", help="remake the artifacts instead of reusing them")
+
+
+def _mapping_conf(args, **overrides):
+    """The mapping settings the command line asks for: the preset name, or a dict of overrides of it."""
+    if args.keyframes is not None:
+        text = args.keyframes.strip()
+        try:
+            cm, deg = (0.0, 0.0) if text == "0" else (float(x) for x in text.split(","))
+        except ValueError:
+            raise InputError(f"--keyframes takes CM,DEG (e.g. 5,5) or 0, got {args.keyframes!r}") from None
+        if not (cm >= 0 and deg >= 0):
+            raise InputError(f"--keyframes thresholds must be >= 0, got {args.keyframes!r}")
+        overrides["keyframes"] = {"min_translation": cm / 100.0, "min_rotation_deg": deg}
+    return {"preset": args.preset, **overrides} if overrides else args.preset
 
 
 def _add_info_parser(sub):

@@ -30,6 +30,7 @@ def test_map_lift_then_map_eval(synthetic_root, tmp_path, capsys):
     assert main(["map", *scene, "--out", str(tmp_path / "m"), "--method", "lift"]) == 0
     out = capsys.readouterr().out
     assert "lines ->" in out and "mapping time:" in out and "supports: median" in out
+    assert "keyframes: 30 of 30 mapping views" in out  # the small room's views are 13-30 cm apart
     assert {"linemap.h5", "linemap.ply", "lines2d.h5", "linemap.html"} <= {p.name for p in (tmp_path / "m").iterdir()}
     assert out.splitlines()[-1] == f"3D view: {tmp_path / 'm' / 'linemap.html'}"
     assert "lifted lines (" in (tmp_path / "m" / "linemap.html").read_text()  # the lift map's one kind
@@ -58,3 +59,24 @@ def test_map_bad_plane_depth_tol(synthetic_root, tmp_path, capsys):
     assert main(["map", "--dataset", "synthetic", "--root", str(synthetic_root), "--scene", "room-s3",
                  "--out", str(tmp_path), "--plane-depth-tol", "-0.1"]) == 2
     assert "--plane-depth-tol must be >= 0" in capsys.readouterr().err
+
+
+def test_keyframes_option_sets_the_mapping_keyframes(synthetic_root, tmp_path, capsys):
+    from argparse import Namespace
+
+    from localization.cli import _mapping_conf
+    from lipmap.mapping.pipeline import get_conf
+
+    conf = get_conf(_mapping_conf(Namespace(preset="fast", keyframes="10,2.5")))
+    assert (conf.keyframes.min_translation, conf.keyframes.min_rotation_deg) == (0.1, 2.5)
+    assert not get_conf(_mapping_conf(Namespace(preset="quick", keyframes="0"))).keyframes.enabled
+    assert _mapping_conf(Namespace(preset="fast", keyframes=None)) == "fast"
+    scene = ["--dataset", "synthetic", "--root", str(synthetic_root), "--scene", "room-s3", "--out", str(tmp_path)]
+    for bad in ("5", "a,b", "-1,5"):
+        assert main(["map", *scene, f"--keyframes={bad}"]) == 2
+        assert "--keyframes" in capsys.readouterr().err
+    # 50 cm / 30 deg: a sparser map of the same room, said in the output
+    assert main(["map", *scene, "--method", "lift", "--keyframes", "50,30"]) == 0
+    out = capsys.readouterr().out
+    n = int(out.split("keyframes: ")[1].split(" of")[0])
+    assert 3 <= n < 30
