@@ -95,12 +95,14 @@ def test_a_fixed_iteration_budget_is_sampled_over_the_views_in_epochs(synthetic_
         torch.testing.assert_close(a, b, rtol=0, atol=0)
 
 
-def test_the_fast_budget_caps_large_scenes_and_leaves_small_ones_their_epochs():
+def test_the_fast_budget_is_the_same_whatever_the_views_and_epochs_can_cap_it():
     from lipmap.planes.optimize import PlaneOptConfig, Schedule
 
     fast = PlaneOptConfig.preset("fast-lines")
-    assert Schedule.of(fast, 30).max_iters == 72 * 30  # the demo's 30 views: 72 passes, as before the budget
+    assert Schedule.of(fast, 30).max_iters == 3600 and Schedule.of(fast, 30).n_epochs == 120
     assert Schedule.of(fast, 50).max_iters == 3600
+    capped = PlaneOptConfig.preset("fast-lines", epochs=72)
+    assert Schedule.of(capped, 30).max_iters == 72 * 30 and Schedule.of(capped, 1500).max_iters == 3600
     assert Schedule.of(fast, 1500).max_iters == 3600 and Schedule.of(fast, 1500).n_epochs == 3
     from lipmap.errors import InputError
 
