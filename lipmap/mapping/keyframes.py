@@ -64,10 +64,11 @@ def _moved(T_last: np.ndarray, T: np.ndarray, conf: KeyframeConfig) -> bool:
 
 def keyframe_views(views: Sequence, conf: KeyframeConfig | None = None) -> list:
     """The keyframe views (see :func:`select_keyframes`), logged."""
+    conf = conf or KeyframeConfig()
     idx = select_keyframes(views, conf)
     if len(idx) < len(views):
         logger.info("keyframes: %d of %d views (moved > %.0f cm or turned > %.0f deg)", len(idx), len(views),
-                    (conf or KeyframeConfig()).min_translation * 100, (conf or KeyframeConfig()).min_rotation_deg)
+                    conf.min_translation * 100, conf.min_rotation_deg)
     return [views[i] for i in idx]
 
 

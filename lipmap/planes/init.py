@@ -418,11 +418,11 @@ def init_planes(views, conf: Optional[PlaneInitConfig] = None, device=None, fram
     """
     conf = conf or PlaneInitConfig()
     if frames is None:
-        views = [v for v in views if v.depth_path is not None and v.cam_from_world is not None]
-        if conf.max_frames and len(views) > conf.max_frames:
-            logger.info("plane init: fusing %d of %d views, evenly spread", conf.max_frames, len(views))
-            views = [views[i] for i in np.unique(np.linspace(0, len(views) - 1, conf.max_frames).round().astype(int))]
-        frames = LazyDepthFrames(views, conf.depth_downscale, conf.target_width)
+        frames = LazyDepthFrames(views, conf.depth_downscale, conf.target_width)  # the views with depth and pose
+        n = len(frames.views)
+        if conf.max_frames and n > conf.max_frames:
+            logger.info("plane init: fusing %d of %d views, evenly spread", conf.max_frames, n)
+            frames.views = [frames.views[i] for i in np.unique(np.linspace(0, n - 1, conf.max_frames).round().astype(int))]
     V, F = fuse_tsdf(frames, conf, device=device)
     logger.info("plane init: fused mesh %d vertices, %d faces", len(V), len(F))
     V, F = decimate(V, F, conf.n_planes, conf.min_component_faces)
