@@ -2,7 +2,7 @@
 
     python benchmarks/localization_variants.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
         --scene redkitchen --out OUT [--method lipmap|lift] [--pose-source posetxt|sfm] [--matches 10] \
-        [--match-seeds 0,1,2,3,4] 'default={}' 'margin0={"line_query": {"min_margin": 0}}' ...
+        [--match-seeds 0,1,2,3,4] [--tag TAG] 'default={}' 'margin0={"line_query": {"min_margin": 0}}' ...
 
 The map, point map and query lines come from a ``lipmap-loc eval`` run into OUT with the default settings (built
 there when missing). Each variant then localizes every query in memory, without journals, for every draw of the
@@ -34,11 +34,13 @@ HEADER = ["variant", "overrides", "point-only: median cm / % at 1, 2, 5 cm", "po
 
 def variant_config(base: LocalizationConfig, over: dict) -> LocalizationConfig:
     over = dict(over)
-    lq, pl = over.pop("line_query", {}), over.pop("point_line_pose", {})
+    lq, pl, rs = over.pop("line_query", {}), over.pop("point_line_pose", {}), dict(over.pop("line_rescue", {}))
+    if "hypotheses" in rs:
+        rs["hypotheses"] = replace(base.line_rescue.hypotheses, **rs["hypotheses"])
     if "line_gates" in over:
         over["line_gates"] = tuple(tuple(float(x) for x in g) for g in over["line_gates"])
     return replace(base, **over, line_query=replace(base.line_query, **lq),
-                   point_line_pose=replace(base.point_line_pose, **pl))
+                   point_line_pose=replace(base.point_line_pose, **pl), line_rescue=replace(base.line_rescue, **rs))
 
 
 def _cell(t: np.ndarray) -> str:
@@ -72,6 +74,7 @@ def main(argv=None):
     ap.add_argument("--pose-source", default="posetxt")
     ap.add_argument("--matches", type=int, default=10, help="point matches per query (0: all)")
     ap.add_argument("--match-seeds", default="0,1,2,3,4")
+    ap.add_argument("--tag", default="", help="suffix of the results file, to keep another set of variants beside")
     ap.add_argument("variants", nargs="+", help="NAME=JSON overrides of LocalizationConfig ('{}' for the defaults)")
     args = ap.parse_args(argv)
 
@@ -100,6 +103,7 @@ def main(argv=None):
                      "median_ms_line_stage": r["line_ms"]}
         print("| " + " | ".join(map(str, rows[-1])) + " |", flush=True)
     name = f"localization-variants-{args.dataset}-{args.scene}-{args.method}-{args.pose_source}-{args.matches or 'all'}"
+    name += f"-{args.tag}" if args.tag else ""
     results.write(name, {"scene": args.scene, "dataset": args.dataset, "method": args.method, "matches": args.matches,
                          "match_seeds": seeds, "variants": out, "table": {"header": HEADER, "rows": rows}})
 

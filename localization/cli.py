@@ -95,6 +95,10 @@ def cmd_eval(args):
                               map_method=args.method, points=args.points)
     if args.line_query:
         conf = replace(conf, line_query=replace(LineQueryConfig(), method=args.line_query))
+    if args.line_rescue is not None:
+        if args.line_rescue < 0:
+            raise InputError(f"--line-rescue takes a number of inliers >= 0, got {args.line_rescue}")
+        conf = replace(conf, line_rescue=replace(conf.line_rescue, weak_inliers=args.line_rescue))
     if args.dataset == "synthetic" and args.root is None:
         from lipmap.datasets.synthetic import generate_scene
 
@@ -280,6 +284,9 @@ def _add_eval_parser(sub):
     p.add_argument("--max-point-matches", type=int, default=None, help="seeded random subset of N 2D-3D point matches per query")
     _add_mapping_args(p, method_default=LocalizationConfig().map_method)
     p.add_argument("--line-query", default=None, choices=list(LINE_QUERY_METHODS))
+    p.add_argument("--line-rescue", type=int, default=None, metavar="N",
+                   help="a query whose point-only pose has fewer than N inliers (or none) starts its lines from wide "
+                        f"gates and its retrieved images' poses (default {LocalizationConfig().line_rescue.weak_inliers}; 0: off)")
     p.add_argument("--points", default="sift-n4096", choices=list(point_confs), help="built-in point preset")
     p.add_argument("--synth-preset", default="small", choices=list(SYNTH_PRESETS))
     p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",

@@ -431,6 +431,14 @@ class ModelIndex:
             self._ids[name] = ids
         return self._ids[name]
 
+    def cam_from_world(self, name: str) -> np.ndarray:
+        """(4, 4) pose of image ``name`` in the model (a starting pose for the line query of a weak query)."""
+        if name not in self._by_name:
+            raise InputError(f"image {name!r} is not in the SfM model", self.path)
+        T = np.eye(4)
+        T[:3] = np.asarray(self.rec.images[self._by_name[name]].cam_from_world().matrix(), dtype=float)
+        return T
+
     def xyz(self, point3D_ids: np.ndarray) -> np.ndarray:
         """(M, 3) world coordinates of 3D point ids."""
         out = np.empty((len(point3D_ids), 3))

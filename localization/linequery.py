@@ -38,6 +38,8 @@ class LineQueryConfig:
     min_support: int = 1  # map lines seen in fewer mapping images are not queried (1: all)
     one_to_one: bool = True  # a map line matches at most one query line (its best), as a point matches one keypoint
     min_margin: float = 6.0  # projection: drop a query line whose runner-up map line scores within this of its best (0: off)
+    # projection: keep each query line's k best map lines (k > 1 turns the margin off: RANSAC picks among them)
+    max_candidates: int = 1
 
 
 def match_score(dist_px: np.ndarray, angle_rad: np.ndarray, conf: LineQueryConfig) -> np.ndarray:
@@ -57,6 +59,15 @@ class LineQuery:
         self.corners = None if corners is None or len(corners) == 0 else np.asarray(corners, dtype=float)
         self.edge_line = None if edge_line is None else np.asarray(edge_line, dtype=np.int64)
         self.caster = PlaneRaycaster(self.corners) if self.corners is not None else None
+
+    def scoring_lines(self, n: int) -> np.ndarray:
+        """The ``n`` longest map lines (N, 2, 3), computed once (:func:`localization.hypotheses.scoring_lines`)."""
+        from .hypotheses import scoring_lines
+
+        cache = self.__dict__.setdefault("_scoring", {})
+        if n not in cache:
+            cache[n] = scoring_lines(self.lines, n)
+        return cache[n]
 
     @classmethod
     def from_linemap(cls, linemap) -> "LineQuery":
@@ -158,6 +169,10 @@ class LineQuery:
         order = np.lexsort((score, qi))  # best candidate first within each query line
         qi, pj, score = qi[order], pj[order], score[order]
         first = np.r_[True, qi[1:] != qi[:-1]] if len(qi) else np.zeros(0, bool)
+        if conf.max_candidates > 1:
+            rank = np.arange(len(qi)) - np.searchsorted(qi, qi)  # 0 for each query line's best candidate
+            keep = rank < conf.max_candidates
+            return qi[keep], vis[pj[keep]]
         if conf.min_margin > 0 and len(qi):
             # a runner-up about as good as the best makes the query line ambiguous (parallel edges a few px apart)
             nxt = np.r_[score[1:], np.inf]

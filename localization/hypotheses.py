@@ -1,0 +1,157 @@
+"""Line-verified pose hypotheses for a query with too few point matches to trust its RANSAC pose.
+
+With ten 2D-3D point matches, a wrong P3P pose often explains as many of them as the right one at RANSAC's
+12 px threshold, and RANSAC keeps whichever it met first. The map's lines can tell them apart. Every P3P pose
+of every triple of matches is scored by how many map lines it projects onto detected lines of the same
+direction; the detections are looked up through one distance transform per direction bin. The best few
+poses then start the wide-gate line rescue (:func:`localization.pipeline.rescue_pose`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import combinations
+
+import cv2
+import numpy as np
+
+
+
+@dataclass
+class HypothesisConfig:
+    max_triples: int = 200  # triples of point matches solved (all when fewer; a seeded sample otherwise)
+    max_point_error: float = 12.0  # px: point inliers of a hypothesis (as the point-only RANSAC)
+    max_hypotheses: int = 60  # the hypotheses with the most point inliers are scored by lines
+    n_map_lines: int = 1500  # the longest map lines score them
+    samples: int = 5  # per map line
+    max_dist_px: float = 3.0  # a sample agrees within this of a detection of its direction
+    angle_bins: int = 8  # direction bins over 180 deg; a detection also counts in the bin next to its angle
+    min_agree: float = 0.8  # share of a line's samples that must agree
+    keep: int = 3  # best hypotheses handed on
+    min_length_px: float = 20.0  # shorter detections and projections are left out (as the line query)
+    box_margin: float = 0.5  # m: a hypothesis' camera lies within the map lines' box grown by this
+
+
+def _bearings(p2d: np.ndarray, camera) -> np.ndarray:
+    x = np.c_[(p2d[:, 0] - camera.cx) / camera.fx, (p2d[:, 1] - camera.cy) / camera.fy, np.ones(len(p2d))]
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def p3p_hypotheses(p2d: np.ndarray, p3d: np.ndarray, camera, conf: HypothesisConfig, seed: int = 0):
+    """Every P3P pose of (a seeded sample of) the triples of matches, with its point inliers.
+
+    Returns:
+        poses :math:`(H, 4, 4)` cam_from_world, inliers :math:`(H,)` counts over all matches.
+    """
+    import poselib
+
+    n = len(p2d)
+    if n < 3:
+        return np.zeros((0, 4, 4)), np.zeros(0, np.int64)
+    triples = np.array(list(combinations(range(n), 3))) if n <= 40 else None
+    rng = np.random.default_rng(seed)
+    if triples is None or len(triples) > conf.max_triples:
+        triples = np.array([rng.choice(n, 3, replace=False) for _ in range(conf.max_triples)])
+    x = _bearings(p2d, camera)
+    poses = []
+    for tri in triples:
+        for pose in poselib.p3p(x[tri], p3d[tri]):
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = pose.R, pose.t
+            poses.append(T)
+    if not poses:
+        return np.zeros((0, 4, 4)), np.zeros(0, np.int64)
+    poses = np.array(poses)
+    Xc = np.einsum("hij,pj->hpi", poses[:, :3, :3], p3d) + poses[:, None, :3, 3]
+    z = Xc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.stack([camera.fx * Xc[..., 0] / z + camera.cx, camera.fy * Xc[..., 1] / z + camera.cy], -1)
+        err = np.linalg.norm(uv - p2d[None], axis=-1)
+    inliers = ((z > 0) & (err <= conf.max_point_error)).sum(1)
+    return poses, inliers
+
+
+class LineEvidence:
+    """The detected lines of one query as per-direction distance maps."""
+
+    def __init__(self, lines2d: np.ndarray, camera, conf: HypothesisConfig):
+        self.camera, self.conf = camera, conf
+        L = np.asarray(lines2d, dtype=float).reshape(-1, 4)
+        L = L[np.linalg.norm(L[:, 2:] - L[:, :2], axis=1) >= conf.min_length_px]
+        B = conf.angle_bins
+        width = np.pi / B
+        ang = np.mod(np.arctan2(L[:, 3] - L[:, 1], L[:, 2] - L[:, 0]), np.pi)
+        own = np.floor(ang / width).astype(int) % B
+        frac = ang / width - np.floor(ang / width)
+        nxt = np.where(frac >= 0.5, own + 1, own - 1) % B  # the neighbour bin nearest to the line's angle
+        self.dist = np.empty((B, camera.height, camera.width), np.float32)
+        # COLMAP pixels: the centre of pixel (i, j) is (j + 0.5, i + 0.5)
+        pts = np.round(L.reshape(-1, 2, 2) - 0.5).astype(np.int32)
+        for b in range(B):
+            mask = np.full((camera.height, camera.width), 255, np.uint8)
+            sel = (own == b) | (nxt == b)
+            if sel.any():
+                cv2.polylines(mask, list(pts[sel]), False, 0, 1)
+            self.dist[b] = cv2.distanceTransform(mask, cv2.DIST_L2, 3)
+
+    def score(self, poses: np.ndarray, lines3d: np.ndarray) -> np.ndarray:
+        """:math:`(H,)` number of ``lines3d`` :math:`(L, 2, 3)` that each pose :math:`(H, 4, 4)` lays on detections."""
+        c, cam = self.conf, self.camera
+        L = len(lines3d)
+        if L == 0 or len(poses) == 0:
+            return np.zeros(len(poses), np.int64)
+        t = np.linspace(0.1, 0.9, c.samples)
+        pts = lines3d[:, None, 0] + t[None, :, None] * (lines3d[:, None, 1] - lines3d[:, None, 0])  # (L, S, 3)
+        allp = np.concatenate([lines3d, pts], 1).reshape(-1, 3)  # endpoints first, then the samples
+        Xc = np.einsum("hij,pj->hpi", poses[:, :3, :3], allp) + poses[:, None, :3, 3]
+        z = Xc[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = cam.fx * Xc[..., 0] / z + cam.cx
+            v = cam.fy * Xc[..., 1] / z + cam.cy
+        u, v, z = (a.reshape(len(poses), L, 2 + c.samples) for a in (u, v, z))
+        ang = np.mod(np.arctan2(v[..., 1] - v[..., 0], u[..., 1] - u[..., 0]), np.pi)
+        b = (np.floor(ang / (np.pi / c.angle_bins)).astype(np.int64) % c.angle_bins)  # (H, L)
+        us, vs, zs = u[..., 2:], v[..., 2:], z[..., 2:]
+        ok = (zs > 0) & (z[..., :2] > 0).all(-1, keepdims=True) & (us >= 0) & (us < cam.width) & (vs >= 0) & (vs < cam.height)
+        ui = np.clip(np.nan_to_num(us), 0, cam.width - 1).astype(np.int64)
+        vi = np.clip(np.nan_to_num(vs), 0, cam.height - 1).astype(np.int64)
+        d = self.dist[np.broadcast_to(b[..., None], ui.shape), vi, ui]
+        agree = (ok & (d <= c.max_dist_px)).mean(-1) >= c.min_agree  # (H, L)
+        # a pose far from the scene sees it small: short projections land on detections by chance
+        long_enough = np.hypot(u[..., 1] - u[..., 0], v[..., 1] - v[..., 0]) >= c.min_length_px
+        return (agree & long_enough).sum(1)
+
+
+def scoring_lines(lines3d: np.ndarray, n: int) -> np.ndarray:
+    """The ``n`` longest of ``lines3d`` (N, 2, 3): long lines are the ones a wrong pose does not lay on detections
+    by chance."""
+    lines3d = np.asarray(lines3d, dtype=float).reshape(-1, 2, 3)
+    length = np.linalg.norm(lines3d[:, 1] - lines3d[:, 0], axis=1)
+    return lines3d[np.sort(np.argsort(-length, kind="stable")[:n])]
+
+
+def line_verified_poses(p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, map_lines: np.ndarray, camera,
+                        conf: HypothesisConfig, seed: int = 0) -> list:
+    """The ``conf.keep`` P3P poses of the point matches that the most map lines agree with, best first.
+
+    Args:
+        p2d: (N, 2) COLMAP pixels; p3d: (N, 3) world points; lines2d: (M, 4) query detections;
+        map_lines: (L, 2, 3) the lines that score (:func:`scoring_lines`).
+
+    Returns:
+        list of (4, 4) cam_from_world.
+    """
+    p2d = np.asarray(p2d, dtype=float).reshape(-1, 2)
+    p3d = np.asarray(p3d, dtype=float).reshape(-1, 3)
+    poses, inl = p3p_hypotheses(p2d, p3d, camera, conf, seed)
+    if len(poses) == 0:
+        return []
+    # the camera must stand within the map (its lines' box, with a margin)
+    lo, hi = map_lines.reshape(-1, 3).min(0) - conf.box_margin, map_lines.reshape(-1, 3).max(0) + conf.box_margin
+    C = -np.einsum("hji,hj->hi", poses[:, :3, :3], poses[:, :3, 3])
+    inside = np.all((C >= lo) & (C <= hi), axis=1)
+    poses, inl = poses[inside], inl[inside]
+    top = np.argsort(-inl, kind="stable")[: conf.max_hypotheses]
+    poses, inl = poses[top], inl[top]
+    score = LineEvidence(lines2d, camera, conf).score(poses, map_lines)
+    order = np.lexsort((-inl, -score))[: conf.keep]
+    return [poses[i] for i in order if score[i] > 0]

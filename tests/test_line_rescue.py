@@ -1,0 +1,131 @@
+"""Lines for queries whose points alone give no trustworthy pose (localization.pipeline.LineRescueConfig)."""
+from dataclasses import replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from lipmap.poses import make_T, pose_errors
+from lipmap.scene import Camera
+from localization.linequery import LineQuery, LineQueryConfig
+from localization.pipeline import LineRescueConfig, LocalizationConfig, line_priors, localize_query, rescue_pose
+from localization.points import PointMatches
+
+CAM = Camera(640, 480, (525, 525, 320, 240))
+
+
+def _project(T, X):
+    Xc = X @ T[:3, :3].T + T[:3, 3]
+    return Xc[:, :2] / Xc[:, 2:] * 525 + [320, 240]
+
+
+def _scene(seed=0, n_lines=40, n_pts=3):
+    """A camera, map lines in front of it (a box of 3D segments), their detections and a few 2D-3D points."""
+    rng = np.random.default_rng(seed)
+    T = make_T(Rotation.from_euler("xyz", rng.uniform(-10, 10, 3), degrees=True).as_matrix(), rng.uniform(-0.3, 0.3, 3))
+    Tinv = np.linalg.inv(T)
+    a = np.c_[rng.uniform(-1.2, 1.2, (n_lines, 2)), rng.uniform(2, 4, n_lines)]
+    b = a + rng.normal(0, 0.4, (n_lines, 3))
+    ends = np.stack([a, b], 1) @ Tinv[:3, :3].T + Tinv[:3, 3]  # world
+    l2 = np.concatenate([_project(T, ends[:, 0]), _project(T, ends[:, 1])], 1)
+    d = l2[:, 2:] - l2[:, :2]
+    l2 = np.concatenate([l2[:, :2] + 0.1 * d, l2[:, 2:] - 0.1 * d], 1) + rng.normal(0, 0.3, (n_lines, 4))
+    Xc = np.c_[rng.uniform(-1, 1, (n_pts, 2)), rng.uniform(2, 4, n_pts)]
+    X = Xc @ Tinv[:3, :3].T + Tinv[:3, 3]
+    pm = PointMatches(p2d=_project(T, X), p3d=X, point3D_ids=np.arange(n_pts), keypoint_idx=np.arange(n_pts))
+    return T, ends, l2, pm
+
+
+def _off(T, cm, deg):
+    dR = Rotation.from_euler("yx", [deg, 0.5 * deg], degrees=True).as_matrix()
+    return make_T(dR @ T[:3, :3], T[:3, 3] + [cm / 100, -cm / 200, 0.0])
+
+
+def test_top_k_candidates_per_query_line():
+    T, ends, l2, _ = _scene()
+    lq = LineQuery(ends)
+    one = lq.match(l2, T, CAM, LineQueryConfig(max_dist_px=30, max_angle_deg=5, min_margin=0, one_to_one=False))
+    three = lq.match(l2, T, CAM, LineQueryConfig(max_dist_px=30, max_angle_deg=5, max_candidates=3, one_to_one=False))
+    assert np.all(np.bincount(three["query_idx"], minlength=len(l2)) <= 3)
+    assert len(three["query_idx"]) > len(one["query_idx"])
+    assert set(zip(one["query_idx"], one["line_idx"])) <= set(zip(three["query_idx"], three["line_idx"]))
+
+
+def test_rescue_recovers_a_pose_the_narrow_gates_cannot():
+    for seed in range(4):
+        T, ends, l2, pm = _scene(seed)
+        prior = _off(T, 8, 3)  # a retrieved view 8 cm / 3 deg away
+        lq = LineQuery(ends)
+        narrow = lq.match(l2, prior, CAM, LineQueryConfig(max_dist_px=8, max_angle_deg=3))
+        assert np.sum(narrow["query_idx"] == narrow["line_idx"]) < 10  # the usual first gate finds few right lines
+        conf = replace(LocalizationConfig(), line_rescue=LineRescueConfig(weak_inliers=12))
+        far = _off(T, 60, 40)  # a useless prior beside it must not win
+        r = rescue_pose(pm, l2, [far, prior], lq, CAM, conf)
+        assert r is not None and r["n_line_inliers"] >= 8
+        dt, dr = pose_errors(T, r["cam_from_world"])
+        assert dt < 0.005 and dr < 0.2
+
+
+class _Points:
+    def __init__(self, pm, model):
+        self.pm, self.model = pm, model
+
+    def matches_for(self, name):
+        return self.pm
+
+    def retrieved_for(self, name):
+        return ["db1", "db2"]
+
+
+class _Model:
+    def __init__(self, poses):
+        self.poses = poses
+
+    def __contains__(self, name):
+        return name in self.poses
+
+    def cam_from_world(self, name):
+        return self.poses[name]
+
+
+def test_localize_query_rescues_a_query_with_too_few_points():
+    T, ends, l2, pm = _scene(1)
+    points = _Points(pm, _Model({"db1": _off(T, 60, 40), "db2": _off(T, 6, 2)}))
+    lq = LineQuery(ends)
+    off = localize_query("q", CAM, points, l2, lq, LocalizationConfig())
+    assert not off["point"]["success"] and not off["point+line"]["success"]  # 3 points: no pose to start from
+    # the lines stand 2-4 m in front of this camera, so its hypotheses lie outside their box + 0.5 m: only the
+    # retrieved images' poses can start the lines
+    conf = replace(LocalizationConfig(), line_rescue=LineRescueConfig(weak_inliers=12, prior_views=2))
+    assert [p.tolist() for p in line_priors("q", {"cam_from_world": None}, points, 2)] == \
+        [points.model.cam_from_world("db1").tolist(), points.model.cam_from_world("db2").tolist()]
+    rec = localize_query("q", CAM, points, l2, lq, conf, cam_from_world_gt=T)
+    pl = rec["point+line"]
+    assert not rec["point"]["success"] and pl["success"] and pl["rescued"] and pl["used_lines"]
+    assert pose_errors(T, np.array(pl["cam_from_world"]))[0] < 0.005
+    assert pl["n_line_matches_correct"] >= 0.9 * pl["n_line_matches"]
+
+
+def test_p3p_hypotheses_hold_the_true_pose():
+    from localization.hypotheses import HypothesisConfig, p3p_hypotheses
+
+    T, ends, l2, pm = _scene(2, n_pts=6)
+    poses, inl = p3p_hypotheses(pm.p2d, pm.p3d, CAM, HypothesisConfig())
+    assert len(poses) >= 20 and inl.max() == 6  # C(6, 3) triples, up to 4 solutions each
+    best = poses[np.argmax(inl)]
+    assert pose_errors(T, best)[0] < 1e-6
+
+
+def test_lines_score_the_true_pose_above_wrong_ones():
+    from localization.hypotheses import HypothesisConfig, LineEvidence, line_verified_poses
+
+    T, ends, l2, pm = _scene(3, n_lines=60, n_pts=6)
+    ev = LineEvidence(l2, CAM, HypothesisConfig())
+    far = make_T(T[:3, :3], T[:3, 3] + [0, 0, 30.0])  # 30 m back: the map is tiny in the image
+    s = ev.score(np.stack([T, _off(T, 5, 2), far]), ends)
+    assert s[0] >= 0.8 * len(ends) and s[1] < 0.3 * s[0] and s[2] == 0
+    # two wrong matches among five: RANSAC's count cannot tell the triples apart, lines can
+    p2d = pm.p2d[:5].copy()
+    p2d[3:] += [[80, -40], [-60, 70]]
+    # (this camera stands 2-4 m before the lines, outside their box grown by the default 0.5 m)
+    poses = line_verified_poses(p2d, pm.p3d[:5], l2, ends, CAM, HypothesisConfig(box_margin=5.0))
+    assert poses and pose_errors(T, poses[0])[0] < 1e-6
