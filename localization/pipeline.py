@@ -59,7 +59,9 @@ class LineRescueConfig:
     gates: tuple = ((30.0, 5.0),)  # (px, deg) per stage: the first from every prior, the next from the best pose
     candidates: int = 3
     min_line_inliers: int = 6
-    max_iterations: int = 2000  # of each start's PnPL RANSAC (10,000: 4x the time, no more accurate)
+    max_iterations: int = 1000  # of each start's PnPL RANSAC (2,000 and 10,000: 1.6x and 6x the time, no more accurate)
+    same_pose_m: float = 0.03  # starts this close to an earlier one (and same_pose_deg) are skipped
+    same_pose_deg: float = 1.0
 
 
 @dataclass
@@ -248,6 +250,7 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
     plconf = replace(conf.point_line_pose, seed=conf.seed, max_iterations=rc.max_iterations,
                      min_iterations=min(conf.point_line_pose.min_iterations, rc.max_iterations))
     best, best_score = None, -1
+    priors = distinct_poses(priors, rc.same_pose_m, rc.same_pose_deg)
     for stage, (px, deg) in enumerate(rc.gates):
         qconf = replace(conf.line_query, method="projection", max_dist_px=float(px), max_angle_deg=float(deg),
                         max_candidates=rc.candidates, min_margin=0.0, one_to_one=False)
@@ -260,6 +263,22 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
             if score > best_score or stage > 0:  # a later stage refines the best pose with narrower gates
                 best, best_score = r, score
     return best
+
+
+def distinct_poses(poses: list, max_m: float, max_deg: float) -> list:
+    """``poses`` without those within ``max_m`` and ``max_deg`` of an earlier one (the same start twice costs a RANSAC
+    and finds the same lines)."""
+    from lipmap.poses import pose_errors
+
+    def same(U, T):
+        dt, dr = pose_errors(U, T)
+        return dt <= max_m and dr <= max_deg
+
+    out = []
+    for T in poses:
+        if not any(same(U, T) for U in out):
+            out.append(T)
+    return out
 
 
 def line_query_schedule(conf: LocalizationConfig) -> list:

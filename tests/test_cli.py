@@ -80,3 +80,9 @@ def test_keyframes_option_sets_the_mapping_keyframes(synthetic_root, tmp_path, c
     out = capsys.readouterr().out
     n = int(out.split("keyframes: ")[1].split(" of")[0])
     assert 3 <= n < 30
+
+
+def test_eval_bad_line_rescue(tmp_path, capsys):
+    assert main(["eval", "--dataset", "synthetic", "--out", str(tmp_path), "--line-rescue", "-1"]) == 2
+    assert "--line-rescue takes a number of inliers >= 0" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # refused before any work
