@@ -141,9 +141,7 @@ class PointLinePoseConfig:
     is tighter than LSD's endpoint noise on real images; chosen by measurement, see the README).
     """
 
-    # px, points. Half the point-only pose's 12 px: with few points a wrong match within 12 px pulls the line-refined
-    # pose (README, localization variants: p6)
-    max_reproj_error: float = 6.0
+    max_reproj_error: float = 12.0  # px, points (as the point-only pose; a rescued query uses LineRescueConfig's)
     max_line_error: float = 2.0  # px, lines -> RansacOptions.max_epipolar_error
     min_lines: int = 3  # fewer line matches -> keep the point-only pose
     seed: int = 0
