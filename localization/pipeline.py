@@ -45,11 +45,13 @@ class LineRescueConfig:
     """Lines for the queries whose points alone give no trustworthy pose.
 
     A point-only pose with fewer than ``weak_inliers`` inliers (or none) is too far off for the narrow gates of
-    the line query. Lines then start from several poses instead: that pose when it exists, and the poses of the
-    ``prior_views`` best retrieved database images. From each, the query takes every map line within the wide
-    gate (``candidates`` per query line, no ambiguity test) and PnPL's RANSAC over all point matches and these
-    line candidates picks a pose; the pose with the most point + line inliers (at least ``min_line_inliers``
-    lines) starts the usual narrowing refinement.
+    the line query, and with few matches a wrong P3P pose often explains as many of them as the right one. Lines
+    then start from several poses instead: that pose when it exists, the P3P poses of the point matches that the
+    most map lines agree with (``hypotheses``, :mod:`localization.hypotheses`), and optionally the poses of the
+    ``prior_views`` best retrieved database images. From each, every query line takes its ``candidates`` nearest
+    map lines within the wide gate (no ambiguity test), and PnPL's RANSAC over all point matches and these
+    candidates picks a pose; the pose with the most point + line inliers (at least ``min_line_inliers`` lines)
+    starts the usual narrowing refinement, with ``max_point_error`` for the points.
     """
 
     weak_inliers: int = 20  # 0: off. Ten point matches are always weak; a full query (hundreds of inliers) never
@@ -84,7 +86,9 @@ class LocalizationConfig:
     line_gates: tuple = ((8.0, 3.0), (4.0, 2.0), (2.0, 1.0))
     line_rescue: LineRescueConfig = field(default_factory=LineRescueConfig)
     mapping: str = "fast"  # lipmap.mapping.pipeline preset
-    map_method: str = "lipmap"  # the LiP-Map map: it helps the pose more than lift's (README, benchmarks/results)
+    # the LiP-Map map. With the rescue, lift's localizes better on redkitchen-sparse and the held-out split, lipmap's
+    # on the RedKitchen mini (README, benchmarks/results)
+    map_method: str = "lipmap"
 
     def digest(self) -> str:
         return digest(asdict(self), 10)
@@ -207,7 +211,8 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
             plconf = replace(plconf, max_reproj_error=rescue.max_point_error)
     t_rescue = (time.perf_counter() - t1) * 1000
     if T is None:
-        rec["point+line"] = {"success": False, "reason": "no point-only pose to start from",
+        why = "no point-only pose, and the line rescue found none" if rescue.weak_inliers > 0 else "no point-only pose to start from"
+        rec["point+line"] = {"success": False, "reason": why,
                              "ms": t_point + (time.perf_counter() - t1) * 1000}
         return rec
     m, inliers, used_lines = None, None, False

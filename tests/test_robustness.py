@@ -218,7 +218,7 @@ def test_bad_queries_fail_alone(mini_root, ref, tmp_path):
     assert re.fullmatch(r".*frame-000004\.pose\.txt: pose is not rigid: .*", res["skipped_invalid_gt"][Q(4)])
     uniform = res["queries"][Q(1)]
     assert uniform["point"]["success"] is False and uniform["point"]["reason"] == "0 matches < 4"
-    assert uniform["point+line"]["reason"] == "no point-only pose to start from"
+    assert uniform["point+line"]["reason"] == "no point-only pose, and the line rescue found none"
     (qlines,) = (out / "synthetic" / SCENE).glob("lines2d_query-*.h5")
     assert load_lines(qlines, Q(1)).shape == (0, 4)
     s = res["summary"]["point"]
