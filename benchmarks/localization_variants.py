@@ -2,7 +2,7 @@
 
     python benchmarks/localization_variants.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
         --scene redkitchen --out OUT [--method lipmap|lift] [--pose-source posetxt|sfm] [--matches 10] \
-        [--match-seeds 0,1,2,3,4] [--tag TAG] 'default={}' 'margin0={"line_query": {"min_margin": 0}}' ...
+        [--match-seeds 0,1,2,3,4] [--tag TAG] [--keyframes CM,DEG|0] 'default={}' 'margin0={"line_query": {"min_margin": 0}}' ...
 
 The map, point map and query lines come from a ``lipmap-loc eval`` run into OUT with the default settings (built
 there when missing). Each variant then localizes every query in memory, without journals, for every draw of the
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import sys
+from argparse import Namespace
 from dataclasses import replace
 from pathlib import Path
 
@@ -22,6 +23,7 @@ import numpy as np
 from lipmap.datasets import load_scene
 from lipmap.lines2d import load_lines
 from lipmap.poses import pose_errors
+from localization.cli import _mapping_conf
 from localization.linequery import LineQuery
 from localization.pipeline import BuiltinPoints, LocalizationConfig, localize_query, query_lines_file, scene_linemap
 
@@ -75,12 +77,15 @@ def main(argv=None):
     ap.add_argument("--matches", type=int, default=10, help="point matches per query (0: all)")
     ap.add_argument("--match-seeds", default="0,1,2,3,4")
     ap.add_argument("--tag", default="", help="suffix of the results file, to keep another set of variants beside")
+    ap.add_argument("--keyframes", default=None, help="the map's keyframe thresholds CM,DEG, or 0 for every view "
+                                                      "(as lipmap-loc eval; default: the preset's)")
     ap.add_argument("variants", nargs="+", help="NAME=JSON overrides of LocalizationConfig ('{}' for the defaults)")
     args = ap.parse_args(argv)
 
     scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source)
     scene_dir = args.out / args.dataset / args.scene
-    base = LocalizationConfig(max_point_matches=args.matches or None, map_method=args.method)
+    base = LocalizationConfig(max_point_matches=args.matches or None, map_method=args.method,
+                              mapping=_mapping_conf(Namespace(preset=LocalizationConfig().mapping, keyframes=args.keyframes)))
     points = BuiltinPoints(scene, scene_dir, base)
     qlines = query_lines_file(scene, scene_dir, base)
     linemap, _ = scene_linemap(scene, scene_dir, base)
