@@ -52,3 +52,14 @@ def test_redkitchen_mini_keeps_nearly_every_frame_with_the_defaults(redkitchen_r
     scene = load_scene("7scenes", redkitchen_root, "redkitchen")
     n = len(select_keyframes(scene.mapping))
     assert 40 <= n <= len(scene.mapping)
+
+
+@pytest.mark.parametrize("method", ["lipmap", "lift"])
+def test_the_map_stamp_records_the_keyframe_thresholds(synthetic_root, method):
+    """Both methods map the keyframes only, so a map made with other thresholds is never reused (it was for lift)."""
+    from lipmap.datasets import load_scene
+    from lipmap.mapping.pipeline import get_conf, mapping_stamp
+
+    scene = load_scene("synthetic", synthetic_root, "room-s3")
+    every = {"preset": "fast", "keyframes": {"min_translation": 0, "min_rotation_deg": 0}}
+    assert mapping_stamp(scene, get_conf(every), method).digest != mapping_stamp(scene, get_conf("fast"), method).digest

@@ -88,6 +88,7 @@ def mapping_stamp(scene, conf=None, method: str = "lipmap", lines_source=None) -
         from ..lift import get_conf as lift_conf
 
         settings["lift"] = asdict(lift_conf(conf.lift))
+        settings["keyframes"] = asdict(conf.keyframes)  # lift maps the keyframes too
     else:
         from ..planes.optimize import PlaneOptConfig
 
