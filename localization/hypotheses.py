@@ -14,6 +14,8 @@ from itertools import combinations
 import cv2
 import numpy as np
 
+from lipmap import geometry as geo
+
 
 
 @dataclass
@@ -32,7 +34,7 @@ class HypothesisConfig:
 
 
 def _bearings(p2d: np.ndarray, camera) -> np.ndarray:
-    x = np.c_[(p2d[:, 0] - camera.cx) / camera.fx, (p2d[:, 1] - camera.cy) / camera.fy, np.ones(len(p2d))]
+    x = geo.unproject_points(p2d, 1.0, camera)
     return x / np.linalg.norm(x, axis=1, keepdims=True)
 
 
@@ -62,10 +64,8 @@ def p3p_hypotheses(p2d: np.ndarray, p3d: np.ndarray, camera, conf: HypothesisCon
         return np.zeros((0, 4, 4)), np.zeros(0, np.int64)
     poses = np.array(poses)
     Xc = p3d @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]
-    z = Xc[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = np.stack([camera.fx * Xc[..., 0] / z + camera.cx, camera.fy * Xc[..., 1] / z + camera.cy], -1)
-        err = np.linalg.norm(uv - p2d[None], axis=-1)
+    uv, z = geo.project_cam_points(Xc, camera)
+    err = np.linalg.norm(uv - p2d[None], axis=-1)
     inliers = ((z > 0) & (err <= conf.max_point_error)).sum(1)
     return poses, inliers
 
@@ -103,11 +103,8 @@ class LineEvidence:
         pts = lines3d[:, None, 0] + t[None, :, None] * (lines3d[:, None, 1] - lines3d[:, None, 0])  # (L, S, 3)
         allp = np.concatenate([lines3d, pts], 1).reshape(-1, 3)  # endpoints first, then the samples
         Xc = allp @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]  # (H, P, 3); matmul beats einsum 5x
-        z = Xc[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = cam.fx * Xc[..., 0] / z + cam.cx
-            v = cam.fy * Xc[..., 1] / z + cam.cy
-        u, v, z = (a.reshape(len(poses), L, 2 + c.samples) for a in (u, v, z))
+        uv, z = geo.project_cam_points(Xc, cam)
+        u, v, z = (a.reshape(len(poses), L, 2 + c.samples) for a in (uv[..., 0], uv[..., 1], z))
         ang = np.mod(np.arctan2(v[..., 1] - v[..., 0], u[..., 1] - u[..., 0]), np.pi)
         b = (np.floor(ang / (np.pi / c.angle_bins)).astype(np.int64) % c.angle_bins)  # (H, L)
         us, vs, zs = u[..., 2:], v[..., 2:], z[..., 2:]
