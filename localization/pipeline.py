@@ -29,6 +29,7 @@ from tqdm import tqdm
 from lipmap import InputError, logger
 from lipmap.artifacts import Stamp, digest, scene_key, variant_dir, views_key
 from lipmap.imageio import write_text_atomic
+from lipmap.poses import pose_errors
 
 from . import evaluate as ev
 from .estimate import PointLinePoseConfig, PointPoseConfig, estimate_pose_point_line, estimate_pose_points, subsample_matches
@@ -277,8 +278,6 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
 def distinct_poses(poses: list, max_m: float, max_deg: float) -> list:
     """``poses`` without those within ``max_m`` and ``max_deg`` of an earlier one (the same start twice costs a RANSAC
     and finds the same lines)."""
-    from lipmap.poses import pose_errors
-
     def same(U, T):
         dt, dr = pose_errors(U, T)
         return dt <= max_m and dr <= max_deg
