@@ -241,7 +241,7 @@ def _add_mapping_args(p, method_default: str):
     p.add_argument("--mapping-step", type=int, default=1, help="use every k-th mapping frame")
     p.add_argument("--keyframes", default=None, metavar="CM,DEG",
                    help="map the views where the camera moved more than CM centimetres or turned more than DEG "
-                        "degrees since the last one (default 5,5; 0 = every view)")
+                        "degrees since the last one, and at least every 5th frame (default 5,5; 0 = every view)")
     p.add_argument("--skip-bad-frames", action="store_true", help="skip unreadable mapping frames (default: stop with an error)")
     p.add_argument("--overwrite", action="store_true", help="remake the artifacts instead of reusing them")
 

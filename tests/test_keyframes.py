@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from lipmap.mapping.keyframes import KeyframeConfig, keyframe_views, select_keyframes
+from lipmap.mapping.keyframes import KeyframeConfig, frame_number, keyframe_views, select_keyframes
 from lipmap.poses import invert_T, make_T
 from lipmap.scene import Camera, View
 
@@ -19,7 +19,7 @@ def view(name, center, yaw_deg=0.0):
 
 def test_translation_threshold_keeps_every_fifth_view_of_a_12mm_walk():
     views = [view(f"seq-01/frame-{i:06d}.color.png", [0.012 * i, 0, 0]) for i in range(31)]
-    idx = select_keyframes(views, KeyframeConfig(min_translation=0.05, min_rotation_deg=0))
+    idx = select_keyframes(views, KeyframeConfig(min_translation=0.05, min_rotation_deg=0, max_frame_gap=0))
     # 4 steps (4.8 cm) stay under 5 cm, the 5th (6 cm) makes the next keyframe
     assert idx.tolist() == [0, 5, 10, 15, 20, 25, 30]
 
@@ -45,13 +45,32 @@ def test_disabled_keeps_every_posed_view_and_views_without_pose_are_skipped():
     assert [v.name for v in keyframe_views(views, KeyframeConfig(0, 0))] == ["seq-01/f0", "seq-01/f1", "seq-01/f3"]
 
 
+def test_frame_numbers_are_read_from_the_file_name():
+    assert frame_number("seq-01/frame-000120.color.png") == 120
+    assert frame_number("db/img_0042.jpg") == 42
+    assert frame_number("seq-07/query.png") is None
+
+
+def test_the_frame_gap_keeps_a_subsampled_set_whole_and_bounds_a_still_camera():
+    # every 5th frame of a slow walk (2 cm apart): motion alone keeps every 3rd, the gap keeps all
+    sub = [view(f"seq-01/frame-{5 * i:06d}.color.png", [0.02 * i, 0, 0]) for i in range(12)]
+    assert select_keyframes(sub, KeyframeConfig(max_frame_gap=0)).tolist() == [0, 3, 6, 9]
+    assert select_keyframes(sub).tolist() == list(range(12))
+    # a camera that does not move at 30 Hz: one keyframe every 5 frames
+    still = [view(f"seq-01/frame-{i:06d}.color.png", [0, 0, 0]) for i in range(16)]
+    assert select_keyframes(still).tolist() == [0, 5, 10, 15]
+    # names without frame numbers: motion only
+    assert select_keyframes([view(f"seq-01/v{c}", [0, 0, 0]) for c in "abc"]).tolist() == [0]
+
+
 @pytest.mark.shared
-def test_redkitchen_mini_keeps_nearly_every_frame_with_the_defaults(redkitchen_root):
+def test_redkitchen_mini_keeps_every_frame_with_the_defaults(redkitchen_root):
     from lipmap.datasets import load_scene
 
     scene = load_scene("7scenes", redkitchen_root, "redkitchen")
-    n = len(select_keyframes(scene.mapping))
-    assert 40 <= n <= len(scene.mapping)
+    # every 10th frame: 4 of them moved < 5 cm and turned < 5 deg, and the frame gap keeps them
+    assert len(select_keyframes(scene.mapping)) == len(scene.mapping) == 50
+    assert len(select_keyframes(scene.mapping, KeyframeConfig(max_frame_gap=0))) == 46
 
 
 @pytest.mark.parametrize("method", ["lipmap", "lift"])
