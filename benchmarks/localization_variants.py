@@ -79,13 +79,16 @@ def main(argv=None):
     ap.add_argument("--tag", default="", help="suffix of the results file, to keep another set of variants beside")
     ap.add_argument("--keyframes", default=None, help="the map's keyframe thresholds CM,DEG, or 0 for every view "
                                                       "(as lipmap-loc eval; default: the preset's)")
+    ap.add_argument("--mapping", default=None, metavar="JSON",
+                    help="overrides of the map's settings, e.g. '{\"refine\": {\"enabled\": true}}' (default: the preset's)")
     ap.add_argument("variants", nargs="+", help="NAME=JSON overrides of LocalizationConfig ('{}' for the defaults)")
     args = ap.parse_args(argv)
 
     scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source)
     scene_dir = args.out / args.dataset / args.scene
     base = LocalizationConfig(max_point_matches=args.matches or None, map_method=args.method,
-                              mapping=_mapping_conf(Namespace(preset=LocalizationConfig().mapping, keyframes=args.keyframes)))
+                              mapping=_mapping_conf(Namespace(preset=LocalizationConfig().mapping, keyframes=args.keyframes),
+                                                    **json.loads(args.mapping or "{}")))
     points = BuiltinPoints(scene, scene_dir, base)
     qlines = query_lines_file(scene, scene_dir, base)
     linemap, _ = scene_linemap(scene, scene_dir, base)

@@ -28,7 +28,7 @@ from lipmap.planes.io import load_planes_meta
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import results  # noqa: E402
 
-EXTRACTION_ONLY = {"extract", "plane_depth_tol", "on_plane_lines", "lift"}
+EXTRACTION_ONLY = {"extract", "plane_depth_tol", "on_plane_lines", "lift", "refine"}
 HEADER = ["variant", "overrides", "lines", "F@5cm", "R@50mm", "edge lines", "edges F@5cm", "edges R@50mm",
           "median images per line (edges)", "planes", "plane depth error median / > 5 cm", "plane optimization"]
 

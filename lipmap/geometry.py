@@ -156,6 +156,33 @@ def project_cam_points(points_cam, camera):
     return xp.stack([u, v], axis=-1), z
 
 
+def projection_matrices(cam_from_world, camera) -> np.ndarray:
+    """``K [R | t]``: :math:`(..., 4, 4)` poses and a Camera / K (or :math:`(..., 3, 3)` Ks) -> :math:`(..., 3, 4)`."""
+    K = np.asarray(camera.K if hasattr(camera, "K") else camera, dtype=float)
+    return K @ np.asarray(cam_from_world, dtype=float)[..., :3, :]
+
+
+def backprojected_planes(segments2d, projections) -> np.ndarray:
+    """World planes through each camera centre and the infinite line of its 2D segment (numpy).
+
+    Scaled so that ``planes[i] @ [X, 1]`` is camera i's depth of ``X`` times the pixel distance of X's
+    projection from the segment's line: divided by that depth it is a reprojection error in pixels.
+
+    Args:
+        segments2d: :math:`(M, 2, 2)` (or (M, 4)) pixel segments.
+        projections: :math:`(M, 3, 4)` or :math:`(3, 4)` (:func:`projection_matrices`).
+
+    Returns:
+        **planes** :math:`(M, 4)`.
+    """
+    seg = np.asarray(as_segments2d(segments2d), dtype=float)
+    h = np.concatenate([seg, np.ones_like(seg[..., :1])], -1)
+    line = np.cross(h[:, 0], h[:, 1])
+    line /= np.maximum(np.linalg.norm(line[:, :2], axis=-1, keepdims=True), _EPS)
+    P = np.broadcast_to(np.asarray(projections, dtype=float), (len(seg), 3, 4))
+    return np.einsum("mi,mij->mj", line, P)
+
+
 def unproject_points(uv, depth, camera):
     """Pixels :math:`(..., 2)` (COLMAP convention) at camera-frame z ``depth`` :math:`(...)` -> camera-frame
     points :math:`(..., 3)`; the inverse of :func:`project_cam_points`."""

@@ -9,8 +9,8 @@ the keyframes.
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Optional, Sequence
 
 import numpy as np
 
@@ -63,7 +63,7 @@ def select_keyframes(views: Sequence, conf: KeyframeConfig | None = None) -> np.
     return np.asarray(keep, dtype=np.int64)
 
 
-def frame_number(name: str) -> Optional[int]:
+def frame_number(name: str) -> int | None:
     """The frame number in an image name: the last run of digits before the first dot of its file name
     (``seq-01/frame-000120.color.png`` -> 120); None when there is none."""
     digits = re.findall(r"\d+", name.rsplit("/", 1)[-1].split(".", 1)[0])
@@ -93,4 +93,4 @@ def keyframe_views(views: Sequence, conf: KeyframeConfig | None = None) -> list:
     return [views[i] for i in idx]
 
 
-__all__ = ["KeyframeConfig", "frame_number", "select_keyframes", "keyframe_views"]
+__all__ = ["KeyframeConfig", "frame_number", "keyframe_views", "select_keyframes"]

@@ -23,6 +23,7 @@ from ..linemap import edge_line_mask  # noqa: F401 - its home is the artifact; k
 from ..presets import resolve
 from .extract import ExtractConfig, add_tracks, depth_residuals, extract_observations, merge_edges
 from .keyframes import KeyframeConfig, keyframe_views
+from .refine import RefineConfig, refine_linemap
 
 
 @dataclass
@@ -46,6 +47,8 @@ class MappingConfig:
     extract: ExtractConfig = field(default_factory=lambda: ExtractConfig(max_dist=3.0, max_angle=0.03))
     lift: str = "lift-merge-loose"  # lipmap.lift preset: method "lift", and the on-plane lines of "lipmap"
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)  # the views a map is built from
+    # on-plane lines refined against every mapping view that sees them, before their tracks are built
+    refine: RefineConfig = field(default_factory=lambda: RefineConfig(enabled=False))
     seed: int = 0
 
 
@@ -175,7 +178,9 @@ def lipmap_linemap(scene, planes, lines_by_view: dict, conf: MappingConfig, dept
     lm.metadata["n_edge_lines"] = n_edges = len(lm)
     if conf.on_plane_lines:
         lm = _add_on_plane_lines(lm, scene, corners, lines_by_view, conf, depth_by_view)
-        lm = add_tracks(lm, scene.mapping, lines_by_view, conf.extract, caster, which=np.arange(n_edges, len(lm)))
+        onp = np.arange(n_edges, len(lm))
+        lm = refine_linemap(lm, scene.mapping, lines_by_view, conf.refine, caster, which=onp)
+        lm = add_tracks(lm, scene.mapping, lines_by_view, conf.extract, caster, which=onp)
     return lm
 
 
