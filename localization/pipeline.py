@@ -59,7 +59,9 @@ class LineRescueConfig:
     prior_views: int = 0  # retrieved images' poses as starts (on the held-out split they lie ~90 cm off: no gain)
     # P3P poses of the point matches that the most map lines agree with, as starts (localization.hypotheses)
     hypotheses: HypothesisConfig = field(default_factory=HypothesisConfig)
-    gates: tuple = ((30.0, 5.0),)  # (px, deg) per stage: the first from every prior, the next from the best pose
+    # (px, deg) per stage: the first from every prior, the next from the best pose; the second bridges the wide
+    # gate and the 8 px of the narrowing rounds, which a pose 5-10 cm off missed (README, `-sweep2` variants)
+    gates: tuple = ((30.0, 5.0), (15.0, 3.0))
     candidates: int = 3
     min_line_inliers: int = 6
     max_iterations: int = 1000  # of each start's PnPL RANSAC (2,000 and 10,000: 1.6x and 6x the time, no more accurate)
