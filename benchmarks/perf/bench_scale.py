@@ -13,6 +13,8 @@ process's high-water mark at the end of the stage. Writes one JSON line per stag
 ``{"views", "queries", "stage", "seconds", "peak_rss_mb", "device"}`` to
 ``benchmarks/results/perf-scale.jsonl`` and the rows with their provenance and the growth ratios to
 ``benchmarks/results/perf-scale.json``. A rerun reuses the work folder's artifacts: delete it to time again.
+``--estimate-from benchmarks/results/perf-scale.jsonl`` only redoes the full-size estimate from those measured
+rows, with the keyframe rate of today's keyframe rule (``--root``/``--work`` are then unused).
 """
 from __future__ import annotations
 
@@ -234,9 +236,9 @@ def _tables(rows: list, est: dict) -> tuple:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--root", type=Path, required=True)
+    ap.add_argument("--root", type=Path)
     ap.add_argument("--scene", default="room-s0")
-    ap.add_argument("--work", type=Path, required=True)
+    ap.add_argument("--work", type=Path)
     ap.add_argument("--views", type=int, nargs="*", default=[100, 400, 1500])
     ap.add_argument("--queries", type=int, nargs="*", default=[100, 500])
     ap.add_argument("--loc-views", type=int, default=100)
@@ -244,15 +246,27 @@ def main(argv=None):
     ap.add_argument("--no-write", action="store_true", help="print only (smoke runs)")
     ap.add_argument("--sevenscenes-root", type=Path, default=REPO.parent / "shared/data/7scenes-redkitchen-mini",
                     help="the RedKitchen mini, whose poses give the keyframe rate of the full-size estimate")
+    ap.add_argument("--estimate-from", type=Path, default=None, metavar="JSONL",
+                    help="only redo the full-size estimate from measured rows (perf-scale.jsonl) with today's keyframe rule")
     ap.add_argument("--worker", choices=["map", "loc"], help=argparse.SUPPRESS)
     ap.add_argument("--n", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if not args.estimate_from and (args.root is None or args.work is None):
+        ap.error("--root and --work are required (unless --estimate-from)")
     if args.worker:
         import logging
 
         logging.getLogger("lipmap").setLevel(logging.WARNING)
         rows = worker_map(args) if args.worker == "map" else worker_loc(args)
         print(json.dumps(rows))
+        return
+    if args.estimate_from:
+        rows = [json.loads(line) for line in args.estimate_from.read_text().splitlines() if line.strip()]
+        est = estimate(rows, keyframe_rate(args.sevenscenes_root))
+        print(json.dumps(est, indent=1))
+        if not args.no_write:
+            results.write("perf-scale-estimate", {"estimate": est, "table": _tables(rows, est)[1],
+                                                  "measured_rows": str(args.estimate_from)})
         return
     rows = [r for n in args.views for r in _run_worker(args, "map", n)]
     rows += [r for n in args.queries for r in _run_worker(args, "loc", n)]
