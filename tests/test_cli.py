@@ -71,6 +71,8 @@ def test_keyframes_option_sets_the_mapping_keyframes(synthetic_root, tmp_path, c
     assert (conf.keyframes.min_translation, conf.keyframes.min_rotation_deg) == (0.1, 2.5)
     assert not get_conf(_mapping_conf(Namespace(preset="quick", keyframes="0"))).keyframes.enabled
     assert _mapping_conf(Namespace(preset="fast", keyframes=None)) == "fast"
+    assert not get_conf("fast").refine.enabled
+    assert get_conf(_mapping_conf(Namespace(preset="fast", keyframes=None, refine_lines=True))).refine.enabled
     scene = ["--dataset", "synthetic", "--root", str(synthetic_root), "--scene", "room-s3", "--out", str(tmp_path)]
     for bad in ("5", "a,b", "-1,5"):
         assert main(["map", *scene, f"--keyframes={bad}"]) == 2
