@@ -6,7 +6,7 @@
 Each variant is mapped into OUT/<NAME> (reused when a map made with the same settings is there). A variant that
 changes only extraction-side settings (``extract``, ``plane_depth_tol``, ``on_plane_lines``, ``lift``) starts
 from the planes of ``--base`` (copied: their stamp says they are the same planes), so it costs seconds, not a
-plane optimization. Prints a table (full map and plane edges alone: F@5cm, R@50mm, median images per line;
+plane optimization. Prints a table (full map and plane edges alone: F@5cm, R@50mm, images per line;
 plane count and depth error) and writes it to ``benchmarks/results/mapping-variants-<dataset>-<scene>.json``.
 """
 from __future__ import annotations
@@ -30,7 +30,7 @@ import results  # noqa: E402
 
 EXTRACTION_ONLY = {"extract", "plane_depth_tol", "on_plane_lines", "lift", "refine"}
 HEADER = ["variant", "overrides", "lines", "F@5cm", "R@50mm", "edge lines", "edges F@5cm", "edges R@50mm",
-          "median images per line (edges)", "planes", "plane depth error median / > 5 cm", "plane optimization"]
+          "images per line: median / mean (edges)", "planes", "plane depth error median / > 5 cm", "plane optimization"]
 
 
 def _conf(preset: str, over: dict):
@@ -45,7 +45,8 @@ def _metrics(lm, gt) -> dict:
     r = evaluate_linemap(lm, gt)
     m1, m2 = r["M1"]["line"], r["M2"]
     return {"n": len(lm), "prec": m1["prec@0.05"], "recall": m1["recall@0.05"], "f": m1["f@0.05"], "r5": m2["R@5mm"],
-            "r50": m2["R@50mm"], "median_images": float(np.median(lm.supports[:, 0])) if len(lm) else 0.0}
+            "r50": m2["R@50mm"], "median_images": float(np.median(lm.supports[:, 0])) if len(lm) else 0.0,
+            "mean_images": float(np.mean(lm.supports[:, 0])) if len(lm) else 0.0}
 
 
 def main(argv=None):
@@ -74,7 +75,8 @@ def main(argv=None):
         data[name] = {"overrides": over, "full": full, "edges": edges, "plane_stats": ps, "timings": lm.metadata.get("timings")}
         rows.append([name, f"`{json.dumps(over)}`" if over else f"preset `{args.preset}`", full["n"], f"{full['f']:.3f}",
                      f"{full['r50']:.0f}", edges["n"], f"{edges['f']:.3f}", f"{edges['r50']:.0f}",
-                     f"{full['median_images']:.0f} ({edges['median_images']:.0f})", ps.get("n_planes", ""),
+                     f"{full['median_images']:.0f} / {full['mean_images']:.1f} ({edges['median_images']:.0f} / "
+                     f"{edges['mean_images']:.1f})", ps.get("n_planes", ""),
                      f"{ps.get('depth_error_median_cm', float('nan')):.1f} cm / {100 * ps.get('depth_error_over_5cm', float('nan')):.0f} %",
                      "" if t is None or (args.base and set(over) <= EXTRACTION_ONLY and over) else f"{t:.0f} s planes"])
         print("| " + " | ".join(map(str, rows[-1])) + " |", flush=True)

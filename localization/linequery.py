@@ -60,14 +60,15 @@ class LineQuery:
         self.edge_line = None if edge_line is None else np.asarray(edge_line, dtype=np.int64)
         self.caster = PlaneRaycaster(self.corners) if self.corners is not None else None
 
-    def scoring_lines(self, n: int) -> np.ndarray:
-        """The ``n`` longest map lines (N, 2, 3), computed once (:func:`localization.hypotheses.scoring_lines`)."""
+    def scoring_lines(self, n: int, min_support: int = 1) -> np.ndarray:
+        """The ``n`` longest map lines seen in at least ``min_support`` mapping images (N, 2, 3), computed once
+        (:func:`localization.hypotheses.scoring_lines`)."""
         from .hypotheses import scoring_lines
 
         cache = self.__dict__.setdefault("_scoring", {})
-        if n not in cache:
-            cache[n] = scoring_lines(self.lines, n)
-        return cache[n]
+        if (n, min_support) not in cache:
+            cache[n, min_support] = scoring_lines(self.lines[self.support >= min_support], n)
+        return cache[n, min_support]
 
     @classmethod
     def from_linemap(cls, linemap) -> "LineQuery":

@@ -206,8 +206,9 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
     if rescue.weak_inliers > 0 and (T is None or est["n_inliers"] < rescue.weak_inliers):
         priors = line_priors(name, est, points, rescue.prior_views)
         if rescue.hypotheses.keep > 0:
-            priors += line_verified_poses(pm.p2d, pm.p3d, lines2d, lq.scoring_lines(rescue.hypotheses.n_map_lines),
-                                          camera, rescue.hypotheses, seed=conf.seed)
+            hc = rescue.hypotheses
+            priors += line_verified_poses(pm.p2d, pm.p3d, lines2d, lq.scoring_lines(hc.n_map_lines, hc.min_support),
+                                          camera, hc, seed=conf.seed)
         r = rescue_pose(pm, lines2d, priors, lq, camera, conf)
         if r is not None:
             T, rescued = r["cam_from_world"], True
