@@ -20,10 +20,10 @@ from ..poses import camera_center, rotation_error_deg
 
 @dataclass
 class KeyframeConfig:
-    """When a view is a new keyframe; both thresholds 0 keep every view."""
+    """When a view is a new keyframe; both motion thresholds 0 keep every view."""
 
-    # 5 cm / 5 deg: the RedKitchen mini (7 cm, 3 deg between frames) keeps nearly every frame, while a
-    # 30 Hz sequence (1-2 cm per frame) keeps about one frame in four
+    # 5 cm / 5 deg: the RedKitchen mini (7 cm, 3 deg between frames) keeps nearly every frame by motion, while
+    # a 30 Hz sequence keeps about one frame in seven
     min_translation: float = 0.05  # metres since the last keyframe
     min_rotation_deg: float = 5.0  # degrees since the last keyframe
     # an already subsampled set (every 5th frame or sparser) stays whole: thinning it again halved the
