@@ -5,6 +5,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from lipmap import geometry as geo
+from lipmap import viz
 from lipmap.linemap import LineMap
 from lipmap.mapping.extract import ExtractConfig, add_tracks
 from lipmap.mapping.refine import (
@@ -13,20 +14,14 @@ from lipmap.mapping.refine import (
     refine_segments,
     reprojection_residuals,
 )
-from lipmap.poses import invert_T, make_T
 from lipmap.scene import Camera, View
 
 CAM = Camera(640, 480, (525.0, 525.0, 320.0, 240.0))
 
 
 def look_at(center, target=(0.0, 0.0, 2.0)):
-    """cam_from_world of a camera at ``center`` looking at ``target`` (y down)."""
-    z = np.asarray(target, float) - center
-    z /= np.linalg.norm(z)
-    x = np.cross([0.0, -1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    R_wc = np.stack([x, np.cross(z, x), z], 1)
-    return invert_T(make_T(R_wc, np.asarray(center, float)))
+    """cam_from_world of a camera at ``center`` looking at ``target``."""
+    return viz.look_at(center, target, up=(0.0, 1.0, 0.0))
 
 
 # five cameras 10-30 cm apart, 2 m from the lines: the narrow baselines of a handheld sequence
