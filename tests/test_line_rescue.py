@@ -129,3 +129,61 @@ def test_lines_score_the_true_pose_above_wrong_ones():
     # (this camera stands 2-4 m before the lines, outside their box grown by the default 0.5 m)
     poses = line_verified_poses(p2d, pm.p3d[:5], l2, ends, CAM, HypothesisConfig(box_margin=5.0))
     assert poses and pose_errors(T, poses[0])[0] < 1e-6
+
+
+def test_line_evidence_masks_hold_the_pixels_near_detections():
+    """The per-direction masks hold every pixel centre within max_dist_px of a detection of that direction bin,
+    and hardly any beyond (exact point-segment distances)."""
+    from localization.hypotheses import HypothesisConfig, LineEvidence
+
+    rng = np.random.default_rng(0)
+    W, H = CAM.width, CAM.height
+    L = np.c_[rng.uniform(0, W, 30), rng.uniform(0, H, 30), rng.uniform(0, W, 30), rng.uniform(0, H, 30)]
+    L = L[np.linalg.norm(L[:, 2:] - L[:, :2], axis=1) >= 40]
+    conf = HypothesisConfig()
+    ev = LineEvidence(L, CAM, conf)
+    yy, xx = np.mgrid[0:H, 0:W] + 0.5  # COLMAP pixel centres
+    P = np.stack([xx, yy], -1).reshape(-1, 2)
+    ang = np.mod(np.arctan2(L[:, 3] - L[:, 1], L[:, 2] - L[:, 0]), np.pi)
+    width = np.pi / conf.angle_bins
+    for b in range(conf.angle_bins):
+        # a line counts in its own bin and the neighbour nearest to its angle
+        own = np.floor(ang / width).astype(int) % conf.angle_bins
+        frac = ang / width - np.floor(ang / width)
+        nxt = np.where(frac >= 0.5, own + 1, own - 1) % conf.angle_bins
+        d = np.full(len(P), np.inf)
+        for a, e in zip(L[(own == b) | (nxt == b), :2], L[(own == b) | (nxt == b), 2:]):
+            ab = e - a
+            t = np.clip((P - a) @ ab / (ab @ ab), 0, 1)
+            d = np.minimum(d, np.linalg.norm(P - a - t[:, None] * ab, axis=1))
+        exact = (d <= conf.max_dist_px).reshape(H, W)
+        near = ev.near[b].astype(bool)
+        assert (exact & ~near).sum() <= 0.01 * max(exact.sum(), 1)  # misses almost none
+        assert (near & ~(d <= conf.max_dist_px + 1.0).reshape(H, W)).sum() == 0  # and nothing a pixel further
+
+
+def test_rescue_starts_near_an_earlier_one_are_skipped():
+    from localization.pipeline import distinct_poses
+
+    T, *_ = _scene(4)
+    starts = [T, _off(T, 6, 2), _off(T, 30, 2), _off(T, 4, 8), _off(T, 31, 2.5)]
+    kept = distinct_poses(starts, LineRescueConfig().same_pose_m, LineRescueConfig().same_pose_deg)
+    # 6 cm / 2 deg from the first repeats it; 30 cm away or 8 deg turned does not; the last repeats the third
+    assert [any(K is S for K in kept) for S in starts] == [True, False, True, True, False]
+
+
+def test_each_rescue_stage_takes_its_own_number_of_candidates():
+    T, ends, l2, pm = _scene(5)
+    lq = LineQuery(ends)
+    used = []
+    match = lq.match
+
+    def spy(lines2d, T0, camera, conf, visible=None):
+        used.append(conf.max_candidates)
+        return match(lines2d, T0, camera, conf, visible)
+
+    lq.match = spy
+    rescue = LineRescueConfig(weak_inliers=12, candidates=3, gates=((30, 5), (15, 3, 1)))
+    r = rescue_pose(pm, l2, [_off(T, 8, 3)], lq, CAM, replace(LocalizationConfig(), line_rescue=rescue))
+    assert used == [3, 1]  # the first stage the default's 3, the second its own 1
+    assert r is not None and pose_errors(T, r["cam_from_world"])[0] < 0.005

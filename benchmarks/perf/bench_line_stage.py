@@ -1,0 +1,150 @@
+"""Where a query's line stage spends its time, component by component, on one scene.
+
+    python benchmarks/perf/bench_line_stage.py --dataset 7scenes --root DATA/heldout --scene redkitchen-heldout \
+        --out OUT --pose-source sfm --matches 10 [--runs 3] [--match-seeds 0,1,2,3,4]
+
+The map, point map and query lines come from a ``lipmap-loc eval`` run into OUT with the default settings (built
+there when missing), as in ``benchmarks/localization_variants.py``. Every query of every draw is localized with the
+defaults while the parts of the line stage are timed:
+
+* ``hypotheses``: P3P poses of the point matches scored by the map lines (weak queries only);
+* ``rescue query`` / ``rescue PnPL``: the wide-gate line query and PoseLib's PnPL RANSAC of each rescue start;
+* ``visibility``, ``narrow query``, ``narrow PnPL``: the narrowing rounds every query goes through.
+
+Per query the parts add up to its line stage (``line_stage_ms`` of the eval's records) up to the glue between them.
+Figures are medians over queries (rescued and not rescued apart), then the median of ``--runs`` runs; written to
+``benchmarks/results/perf-line-stage-<scene>-<N>.json``.
+"""
+from __future__ import annotations
+
+import statistics
+import sys
+import time
+from argparse import Namespace
+from collections import defaultdict
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+import results  # noqa: E402
+
+PARTS = ("hypotheses", "rescue query", "rescue PnPL", "visibility", "narrow query", "narrow PnPL")
+
+
+class PartTimer:
+    """Wraps the functions the line stage calls and sums their time per query, by part."""
+
+    def __init__(self, lq):
+        import localization.pipeline as P
+
+        self.P, self.lq, self.t, self.in_rescue = P, lq, defaultdict(float), False
+        self.saved = [(P, "line_verified_poses"), (P, "estimate_pose_point_line"), (P, "rescue_pose"),
+                      (lq, "match"), (lq, "visible_lines")]
+        self.originals = [getattr(o, n) for o, n in self.saved]
+        self._wrap(P, "line_verified_poses", lambda: "hypotheses")
+        self._wrap(P, "estimate_pose_point_line", lambda: "rescue PnPL" if self.in_rescue else "narrow PnPL")
+        self._wrap(lq, "match", lambda: "rescue query" if self.in_rescue else "narrow query")
+        self._wrap(lq, "visible_lines", lambda: None if self.in_rescue else "visibility")
+        rescue = P.rescue_pose
+
+        def flagged(*a, **k):
+            self.in_rescue = True
+            try:
+                return rescue(*a, **k)
+            finally:
+                self.in_rescue = False
+
+        P.rescue_pose = flagged
+
+    def _wrap(self, owner, name, part):
+        f = getattr(owner, name)
+
+        def timed(*a, **k):
+            key = part()
+            t = time.perf_counter()
+            try:
+                return f(*a, **k)
+            finally:
+                if key is not None:  # the rescue's own visibility tests count in its query
+                    self.t[key] += (time.perf_counter() - t) * 1000
+
+        setattr(owner, name, timed)
+
+    def take(self) -> dict:
+        out = dict(self.t)
+        self.t.clear()
+        return out
+
+    def restore(self):
+        for (o, n), f in zip(self.saved, self.originals):
+            setattr(o, n, f)
+
+
+def run_once(scene, points, lq, lines, conf, seeds) -> dict:
+    from localization.pipeline import localize_query
+
+    timer = PartTimer(lq)
+    rows = {"rescued": defaultdict(list), "not rescued": defaultdict(list)}
+    try:
+        for seed in seeds:
+            c = replace(conf, match_seed=seed)
+            for v in scene.query:
+                timer.take()
+                rec = localize_query(v.name, v.camera, points, lines[v.name], lq, c)
+                parts = timer.take()
+                pl = rec["point+line"]
+                if "line_stage_ms" not in pl:
+                    continue
+                # a weak query goes through the rescue, whether or not it finds a pose
+                group = rows["rescued" if pl.get("rescued") or "hypotheses" in parts else "not rescued"]
+                group["line stage"].append(pl["line_stage_ms"])
+                for p in PARTS:
+                    group[p].append(parts.get(p, 0.0))
+    finally:
+        timer.restore()
+    return {g: {k: float(np.median(v)) for k, v in r.items()} | {"queries": len(r["line stage"])}
+            for g, r in rows.items() if r}
+
+
+def main(argv=None):
+    from lipmap.datasets import load_scene
+    from lipmap.lines2d import load_lines
+    from localization.cli import _mapping_conf
+    from localization.linequery import LineQuery
+    from localization.pipeline import BuiltinPoints, LocalizationConfig, query_lines_file, scene_linemap
+
+    ap = results.scene_parser(__doc__)
+    ap.add_argument("--pose-source", default="posetxt")
+    ap.add_argument("--matches", type=int, default=10, help="point matches per query (0: all)")
+    ap.add_argument("--match-seeds", default="0,1,2,3,4")
+    ap.add_argument("--runs", type=int, default=3)
+    args = ap.parse_args(argv)
+
+    scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source)
+    scene_dir = args.out / args.dataset / args.scene
+    base = LocalizationConfig(max_point_matches=args.matches or None,
+                              mapping=_mapping_conf(Namespace(preset=LocalizationConfig().mapping, keyframes=None)))
+    points = BuiltinPoints(scene, scene_dir, base)
+    qlines = query_lines_file(scene, scene_dir, base)
+    linemap, _ = scene_linemap(scene, scene_dir, base)
+    lq = LineQuery.from_linemap(linemap)
+    lines = {v.name: load_lines(qlines, v.name) for v in scene.query}
+    seeds = [int(s) for s in args.match_seeds.split(",")] if args.matches else [0]
+    run_once(scene, points, lq, lines, base, seeds[:1])  # warm-up: caches, imports
+    runs = [run_once(scene, points, lq, lines, base, seeds) for _ in range(args.runs)]
+    out = {}
+    for group in runs[0]:
+        out[group] = {k: statistics.median(r[group][k] for r in runs) for k in runs[0][group]}
+        print(f"{args.scene}, {args.matches or 'all'} matches, {group} ({out[group]['queries']} per run): median ms "
+              + ", ".join(f"{k} {out[group][k]:.1f}" for k in ("line stage", *PARTS)))
+    results.write(f"perf-line-stage-{args.scene}-{args.matches or 'all'}",
+                  {"scene": args.scene, "dataset": args.dataset, "pose_source": args.pose_source, "matches": args.matches,
+                   "match_seeds": seeds, "runs": args.runs, "map_lines": len(linemap), "median_ms": out})
+
+
+if __name__ == "__main__":
+    main()
