@@ -33,6 +33,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 import results  # noqa: E402
 
 PARTS = ("hypotheses", "rescue query", "rescue PnPL", "visibility", "narrow query", "narrow PnPL")
+HEADER = ["scene", "point matches", "queries (per run)", "line stage ms", *(f"{p} ms" for p in PARTS)]
 
 
 class PartTimer:
@@ -136,14 +137,17 @@ def main(argv=None):
     seeds = [int(s) for s in args.match_seeds.split(",")] if args.matches else [0]
     run_once(scene, points, lq, lines, base, seeds[:1])  # warm-up: caches, imports
     runs = [run_once(scene, points, lq, lines, base, seeds) for _ in range(args.runs)]
-    out = {}
+    out, rows = {}, []
     for group in runs[0]:
         out[group] = {k: statistics.median(r[group][k] for r in runs) for k in runs[0][group]}
+        rows.append([args.scene, args.matches or "all", f"{group} ({out[group]['queries']})",
+                     *(f"{out[group][k]:.1f}" for k in ("line stage", *PARTS))])
         print(f"{args.scene}, {args.matches or 'all'} matches, {group} ({out[group]['queries']} per run): median ms "
               + ", ".join(f"{k} {out[group][k]:.1f}" for k in ("line stage", *PARTS)))
     results.write(f"perf-line-stage-{args.scene}-{args.matches or 'all'}",
                   {"scene": args.scene, "dataset": args.dataset, "pose_source": args.pose_source, "matches": args.matches,
-                   "match_seeds": seeds, "runs": args.runs, "map_lines": len(linemap), "median_ms": out})
+                   "match_seeds": seeds, "runs": args.runs, "map_lines": len(linemap), "median_ms": out,
+                   "table": {"header": HEADER, "rows": rows}})
 
 
 if __name__ == "__main__":
