@@ -13,7 +13,7 @@ defaults while the parts of the line stage are timed:
 
 Per query the parts add up to its line stage (``line_stage_ms`` of the eval's records) up to the glue between them.
 Figures are medians over queries (rescued and not rescued apart), then the median of ``--runs`` runs; written to
-``benchmarks/results/perf-line-stage-<scene>-<N>.json``.
+``benchmarks/results/perf-line-stage-<scene>-<N>[-<tag>].json``.
 """
 from __future__ import annotations
 
@@ -123,6 +123,7 @@ def main(argv=None):
     ap.add_argument("--matches", type=int, default=10, help="point matches per query (0: all)")
     ap.add_argument("--match-seeds", default="0,1,2,3,4")
     ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--tag", default="", help="suffix of the results file (e.g. the commit of another checkout)")
     args = ap.parse_args(argv)
 
     scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source)
@@ -144,7 +145,7 @@ def main(argv=None):
                      *(f"{out[group][k]:.1f}" for k in ("line stage", *PARTS))])
         print(f"{args.scene}, {args.matches or 'all'} matches, {group} ({out[group]['queries']} per run): median ms "
               + ", ".join(f"{k} {out[group][k]:.1f}" for k in ("line stage", *PARTS)))
-    results.write(f"perf-line-stage-{args.scene}-{args.matches or 'all'}",
+    results.write(f"perf-line-stage-{args.scene}-{args.matches or 'all'}" + (f"-{args.tag}" if args.tag else ""),
                   {"scene": args.scene, "dataset": args.dataset, "pose_source": args.pose_source, "matches": args.matches,
                    "match_seeds": seeds, "runs": args.runs, "map_lines": len(linemap), "median_ms": out,
                    "table": {"header": HEADER, "rows": rows}})
