@@ -142,30 +142,37 @@ class LineQuery:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         proj, _ = geo.project_segments(self.lines[vis], T, camera)
         qs = geo.as_segments2d(q)
-        # Cheap tests first, over all pairs as matrix products: the angle (unit directions), then the distance of
-        # both query endpoints to the projected infinite line (its unit normal); only the few pairs left get the
-        # overlap (a query has ~300 lines, a view ~2000 map lines, and man-made scenes are full of parallels).
+        # Cheap tests first, over all pairs as float32 matrix products (a query has ~300 lines, a view ~2000 map
+        # lines): the angle (unit directions) and the distance of both query endpoints to the projected infinite
+        # line (its unit normal); only the few pairs left get the overlap and their float64 distances.
         dq = qs[:, 1] - qs[:, 0]
         dp = proj[:, 1] - proj[:, 0]
         dq = dq / np.maximum(np.linalg.norm(dq, axis=1, keepdims=True), 1e-9)
         lp = np.maximum(np.linalg.norm(dp, axis=1, keepdims=True), 1e-9)
         dp = dp / lp
-        cos = np.abs(dq @ dp.T)
-        qi, pj = np.nonzero(cos >= np.cos(np.radians(conf.max_angle_deg)))
-        if len(qi) == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
         nrm = np.stack([-dp[:, 1], dp[:, 0]], 1)  # (P, 2) unit normals of the projected lines
         off = (nrm * proj[:, 0]).sum(1)
+        cos_gate = np.cos(np.radians(conf.max_angle_deg))
+        with np.errstate(invalid="ignore"):  # NaN projections (behind the camera) pass no test
+            # float32 screens with gates a hair wider; the survivors are tested again in float64 below
+            nrm32, off32, gate32 = nrm.T.astype(np.float32), off.astype(np.float32), np.float32(conf.max_dist_px + 1e-3)
+            m = np.abs(dq.astype(np.float32) @ dp.T.astype(np.float32)) >= np.float32(cos_gate - 1e-5)
+            m &= np.abs(qs[:, 0].astype(np.float32) @ nrm32 - off32) <= gate32
+            m &= np.abs(qs[:, 1].astype(np.float32) @ nrm32 - off32) <= gate32
+        qi, pj = np.nonzero(m)
+        cos = np.abs((dq[qi] * dp[pj]).sum(1))
         d0 = np.abs((qs[qi, 0] * nrm[pj]).sum(1) - off[pj])
         d1 = np.abs((qs[qi, 1] * nrm[pj]).sum(1) - off[pj])
         dist = np.maximum(d0, d1)
-        near = dist <= conf.max_dist_px
-        qi, pj, dist = qi[near], pj[near], dist[near]
+        near = (cos >= cos_gate) & (dist <= conf.max_dist_px)
+        qi, pj, dist, cos = qi[near], pj[near], dist[near], cos[near]
+        if len(qi) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
         with np.errstate(invalid="ignore"):
             ov = geo.overlap_ratio(proj[pj], qs[qi])  # overlap of the projected line on the query line
         ok = ov >= conf.min_overlap
         qi, pj, dist = qi[ok], pj[ok], dist[ok]
-        ang = np.arccos(np.clip(cos[qi, pj], -1.0, 1.0))
+        ang = np.arccos(np.clip(cos[ok], -1.0, 1.0))
         score = match_score(dist, ang, conf)
         order = np.lexsort((score, qi))  # best candidate first within each query line
         qi, pj, score = qi[order], pj[order], score[order]

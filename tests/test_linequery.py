@@ -101,3 +101,30 @@ def test_min_margin_drops_query_lines_with_an_equally_good_runner_up():
     assert len(lq.match(q, T, SMALL_CAMERA, LineQueryConfig(method="projection", max_dist_px=4, min_margin=6.0))["query_idx"]) == 0
     alone = LineQuery(lines, corners, edge_line)  # without the twin, the runner-up (if any) is far: kept
     assert alone.match(q, T, SMALL_CAMERA, LineQueryConfig(method="projection", max_dist_px=4, min_margin=6.0))["line_idx"].tolist() == [0]
+
+
+def test_projection_candidates_equal_a_float64_reference():
+    """The float32 screening of the projection query keeps exactly the pairs of a plain float64 test of every
+    (query line, map line) pair: angle, both query endpoints' distance to the projected line, overlap."""
+    rng = np.random.default_rng(0)
+    cam = SMALL_CAMERA
+    T = make_T(np.eye(3), np.zeros(3))
+    a = np.c_[rng.uniform(-1.5, 1.5, (400, 2)), rng.uniform(2, 5, 400)]
+    lines = np.stack([a, a + rng.normal(0, 0.3, (400, 3))], 1)
+    lines[::7, 1, 2] = -1.0  # some lines cross behind the camera
+    proj, _ = geo.project_segments(lines, T, cam)
+    # query lines: projections moved by up to ~10 px and turned by up to ~4 deg, so many sit at the gates
+    q = proj.reshape(-1, 4)[::2] + rng.normal(0, 4, (200, 4))
+    q = q[np.all(np.isfinite(q), 1) & (np.linalg.norm(q[:, 2:] - q[:, :2], axis=1) >= 20)]
+    conf = LineQueryConfig(max_dist_px=8, max_angle_deg=3, min_overlap=0.3, max_candidates=10_000, min_margin=0,
+                           one_to_one=False)
+    lq = LineQuery(lines)
+    got = set(zip(*lq._projection(q, T, cam, conf, visible=np.arange(len(lines)))))
+    qs = geo.as_segments2d(q)[:, None]
+    with np.errstate(invalid="ignore"):
+        ang = geo.angle_distance(qs, proj[None])
+        dist = geo.perpendicular_distance(qs, proj[None], "max")
+        ov = geo.overlap_ratio(proj[None], qs)
+    ok = (ang <= np.radians(3)) & (dist <= 8) & (ov >= 0.3)
+    ref = set(zip(*np.nonzero(ok)))
+    assert len(ref) > 50 and got == {(int(i), int(j)) for i, j in ref}
