@@ -15,6 +15,8 @@ per-query results go to a journal so an interrupted run resumes where it stopped
 """
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 import math
 import os
@@ -477,9 +479,24 @@ def query_lines_file(scene, out_dir: Path, conf: LocalizationConfig, overwrite: 
     return detect_lines(scene.query, out_dir / f"lines2d_query-{stamp.digest[:8]}.h5", lconf, overwrite=overwrite)
 
 
+@functools.lru_cache(maxsize=1)
+def code_digest() -> str:
+    """Digest of the source of the ``lipmap`` and ``localization`` packages (every ``.py`` file, path and bytes)."""
+    import lipmap
+
+    h = hashlib.sha256()
+    for pkg in (Path(lipmap.__file__).parent, Path(__file__).parent):
+        for f in sorted(pkg.rglob("*.py")):
+            h.update(f"{pkg.name}/{f.relative_to(pkg).as_posix()}".encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
 def _journal_digest(scene, conf: LocalizationConfig, map_info: dict, points, qlines_h5: Path) -> str:
+    # A journal resumes an interrupted run of the same code: after a change to the code its records (poses and
+    # timings) would be the old code's, so another code starts another journal.
     return digest({"conf": asdict(conf), "map": map_info["digest"], "points": points.stamp.digest,
-                   "query_lines": qlines_h5.name, "queries": views_key(scene.query)}, 10)
+                   "query_lines": qlines_h5.name, "queries": views_key(scene.query), "code": code_digest()}, 10)
 
 
 def resume_scene(job: SceneJob, overwrite: bool = False) -> dict:

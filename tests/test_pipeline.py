@@ -169,3 +169,19 @@ def test_map_into_a_folder_made_with_other_settings_stops_naming_both(mini_root,
     with pytest.raises(StaleArtifactError, match=r"lift\.merge_max_angle: 0\.03 -> 0\.01"):
         map_scene(scene, tmp_path / "m", {"preset": "quick", "lift": "lift-merge"}, "lift")
     assert path.stat().st_mtime_ns == mtime  # nothing was touched
+
+
+def test_a_journal_is_not_resumed_by_other_code(mini_root, tmp_path, monkeypatch):
+    """The journal resumes the same code's run; after a code change the queries are localized again (their
+    poses and timings would otherwise be the old code's)."""
+    import localization.pipeline as lp
+
+    out = tmp_path / "out"
+    run_eval("synthetic", mini_root, ["room-s1"], out, CONF)
+    first = set((out / "synthetic" / "room-s1").glob("queries-*.jsonl"))
+    run_eval("synthetic", mini_root, ["room-s1"], out, CONF)  # same code: the same journal, nothing redone
+    assert set((out / "synthetic" / "room-s1").glob("queries-*.jsonl")) == first
+    monkeypatch.setattr(lp, "code_digest", lambda: "other-code")
+    run_eval("synthetic", mini_root, ["room-s1"], out, CONF)
+    journals = set((out / "synthetic" / "room-s1").glob("queries-*.jsonl"))
+    assert len(journals) == 2 and len((journals - first).pop().read_text().splitlines()) == 6
