@@ -70,6 +70,15 @@ def run_variant(scene, points, lq, lines, conf: LocalizationConfig, seeds) -> di
             "line_matches": n_m, "line_matches_correct": n_ok}
 
 
+def eval_inputs(scene, scene_dir: Path, base: LocalizationConfig):
+    """(point source, line map, its LineQuery, {query name: 2D lines}) of a ``lipmap-loc eval`` run with ``base`` into
+    ``scene_dir`` (built there when missing)."""
+    points = BuiltinPoints(scene, scene_dir, base)
+    qlines = query_lines_file(scene, scene_dir, base)
+    linemap, _ = scene_linemap(scene, scene_dir, base)
+    return points, linemap, LineQuery.from_linemap(linemap), {v.name: load_lines(qlines, v.name) for v in scene.query}
+
+
 def main(argv=None):
     ap = results.scene_parser(__doc__)
     ap.add_argument("--method", default=LocalizationConfig().map_method)
@@ -89,11 +98,7 @@ def main(argv=None):
     base = LocalizationConfig(max_point_matches=args.matches or None, map_method=args.method,
                               mapping=_mapping_conf(Namespace(preset=LocalizationConfig().mapping, keyframes=args.keyframes),
                                                     **json.loads(args.mapping or "{}")))
-    points = BuiltinPoints(scene, scene_dir, base)
-    qlines = query_lines_file(scene, scene_dir, base)
-    linemap, _ = scene_linemap(scene, scene_dir, base)
-    lq = LineQuery.from_linemap(linemap)
-    lines = {v.name: load_lines(qlines, v.name) for v in scene.query}
+    points, linemap, lq, lines = eval_inputs(scene, scene_dir, base)
     seeds = [int(s) for s in args.match_seeds.split(",")] if args.matches else [0]
 
     rows, out = [], {}

@@ -113,10 +113,9 @@ def run_once(scene, points, lq, lines, conf, seeds) -> dict:
 
 def main(argv=None):
     from lipmap.datasets import load_scene
-    from lipmap.lines2d import load_lines
     from localization.cli import _mapping_conf
-    from localization.linequery import LineQuery
-    from localization.pipeline import BuiltinPoints, LocalizationConfig, query_lines_file, scene_linemap
+    from localization.pipeline import LocalizationConfig
+    from localization_variants import eval_inputs
 
     ap = results.scene_parser(__doc__)
     ap.add_argument("--pose-source", default="posetxt")
@@ -130,11 +129,7 @@ def main(argv=None):
     scene_dir = args.out / args.dataset / args.scene
     base = LocalizationConfig(max_point_matches=args.matches or None,
                               mapping=_mapping_conf(Namespace(preset=LocalizationConfig().mapping, keyframes=None)))
-    points = BuiltinPoints(scene, scene_dir, base)
-    qlines = query_lines_file(scene, scene_dir, base)
-    linemap, _ = scene_linemap(scene, scene_dir, base)
-    lq = LineQuery.from_linemap(linemap)
-    lines = {v.name: load_lines(qlines, v.name) for v in scene.query}
+    points, linemap, lq, lines = eval_inputs(scene, scene_dir, base)
     seeds = [int(s) for s in args.match_seeds.split(",")] if args.matches else [0]
     run_once(scene, points, lq, lines, base, seeds[:1])  # warm-up: caches, imports
     runs = [run_once(scene, points, lq, lines, base, seeds) for _ in range(args.runs)]
