@@ -30,6 +30,10 @@ class HypothesisConfig:
     angle_bins: int = 8  # direction bins over 180 deg; a detection also counts in the bin next to its angle
     min_agree: float = 0.8  # share of a line's samples that must agree
     keep: int = 3  # best hypotheses handed on
+    # a first pass scores every hypothesis with the ``coarse_lines`` longest lines and only its ``coarse_keep`` best go
+    # on to all ``n_map_lines`` (the scoring is the cost of this step); 0: one pass
+    coarse_lines: int = 300
+    coarse_keep: int = 10
     min_length_px: float = 20.0  # shorter detections and projections are left out (as the line query)
     box_margin: float = 0.5  # m: a hypothesis' camera lies within the map lines' box grown by this
 
@@ -154,6 +158,11 @@ def line_verified_poses(p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, m
     poses, inl = poses[inside], inl[inside]
     top = np.argsort(-inl, kind="stable")[: conf.max_hypotheses]
     poses, inl = poses[top], inl[top]
-    score = LineEvidence(lines2d, camera, conf).score(poses, map_lines)
+    evidence = LineEvidence(lines2d, camera, conf)
+    if 0 < conf.coarse_lines < len(map_lines) and conf.coarse_keep < len(poses):
+        coarse = evidence.score(poses, scoring_lines(map_lines, conf.coarse_lines))
+        first = np.lexsort((-inl, -coarse))[: conf.coarse_keep]
+        poses, inl = poses[first], inl[first]
+    score = evidence.score(poses, map_lines)
     order = np.lexsort((-inl, -score))[: conf.keep]
     return [poses[i] for i in order if score[i] > 0]
