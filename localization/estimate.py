@@ -18,6 +18,7 @@ from typing import Optional
 
 import numpy as np
 
+from lipmap import geometry as geo
 from lipmap import logger
 from lipmap.poses import make_T
 
@@ -213,4 +214,54 @@ def estimate_pose_point_line(
     pt_inl[pi] = np.asarray(info.get("inliers_points", info.get("inliers", np.zeros(len(pi)))), dtype=bool)
     ok = bool(np.all(np.isfinite(T)) and pt_inl.sum() + line_inl.sum() >= 4)
     return {"cam_from_world": T if np.all(np.isfinite(T)) else None, "success": ok, "n_inliers": int(pt_inl.sum()),
+            "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": m}
+
+
+def refine_pose_point_line(
+    p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, lines3d: np.ndarray, camera, initial: np.ndarray,
+    point_scale: float, line_scale: float, max_reproj_error: float, max_line_error: float,
+) -> dict:
+    """Robust point+line refinement from ``initial`` (``poselib.refine_absolute_pose_pnpl``, Cauchy losses), without
+    RANSAC: for a start already near the pose, one refinement instead of a thousand minimal samples.
+
+    Args:
+        p2d: (N, 2) COLMAP pixels; p3d: (N, 3); lines2d: (M, 2, 2); lines3d: (M, 2, 3); initial: (4, 4).
+        point_scale, line_scale: px, the Cauchy scales (residuals well beyond them barely pull).
+        max_reproj_error, max_line_error: px, the inlier thresholds counted at the refined pose (a line's residual
+            is the farther of its projected 3D endpoints from the detection's infinite line, as PoseLib's).
+
+    Returns:
+        the dict of :func:`estimate_pose_point_line`.
+    """
+    import poselib
+
+    p2d = np.asarray(p2d, dtype=np.float64).reshape(-1, 2)
+    p3d = np.asarray(p3d, dtype=np.float64).reshape(-1, 3)
+    l2 = np.asarray(lines2d, dtype=np.float64).reshape(-1, 2, 2)
+    l3 = np.asarray(lines3d, dtype=np.float64).reshape(-1, 2, 3)
+    n, m = len(p2d), len(l2)
+    fail = {"cam_from_world": None, "success": False, "n_inliers": 0, "n_line_inliers": 0,
+            "line_inliers": np.zeros(m, bool), "inliers": np.zeros(n, bool), "n_lines": m}
+    if n + m < 4:
+        return {**fail, "reason": "fewer than 4 correspondences"}
+    init = poselib.CameraPose()
+    init.R, init.t = np.asarray(initial[:3, :3], np.float64), np.asarray(initial[:3, 3], np.float64)
+    cam = _camera_dict(camera)
+    try:
+        pose, _ = poselib.refine_absolute_pose_pnpl(
+            p2d, p3d, l2[:, 0], l2[:, 1], l3[:, 0], l3[:, 1], init, cam,
+            {"loss_type": "CAUCHY", "loss_scale": float(point_scale)},
+            {"loss_type": "CAUCHY", "loss_scale": float(line_scale)})
+    except Exception as e:  # malformed input only
+        logger.warning("PoseLib PnPL refinement failed: %s", e)
+        return {**fail, "reason": f"PoseLib error: {e}"}
+    T = make_T(np.asarray(pose.R), np.asarray(pose.t))
+    if not np.all(np.isfinite(T)):
+        return {**fail, "reason": "refinement diverged"}
+    uv, z = geo.project_points(p3d, T, camera) if n else (np.zeros((0, 2)), np.zeros(0))
+    pt_inl = (np.asarray(z) > 0) & (np.linalg.norm(np.asarray(uv) - p2d, axis=1) <= max_reproj_error)
+    proj, valid = geo.project_segments(l3, T, camera)
+    with np.errstate(invalid="ignore"):
+        line_inl = valid & (geo.perpendicular_distance(proj, l2, "max") <= max_line_error)
+    return {"cam_from_world": T, "success": bool(pt_inl.sum() + line_inl.sum() >= 4), "n_inliers": int(pt_inl.sum()),
             "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": m}

@@ -34,7 +34,8 @@ from lipmap.imageio import write_text_atomic
 from lipmap.poses import pose_errors
 
 from . import evaluate as ev
-from .estimate import PointLinePoseConfig, PointPoseConfig, estimate_pose_point_line, estimate_pose_points, subsample_matches
+from .estimate import (PointLinePoseConfig, PointPoseConfig, estimate_pose_point_line, estimate_pose_points,
+                       refine_pose_point_line, subsample_matches)
 from .hypotheses import HypothesisConfig, line_verified_poses
 from .linequery import LineQuery, LineQueryConfig, correct_line_matches
 
@@ -76,6 +77,11 @@ class LineRescueConfig:
     # lines (held-out, 10 matches: 15 % less time than at 3 cm / 1 deg, same accuracy; README, `-speed2` variants)
     same_pose_m: float = 0.10
     same_pose_deg: float = 3.0
+    # "ransac": each start's candidates go through PoseLib's PnPL RANSAC, and the later stages refine the best pose;
+    # "refine": each start goes through every stage as a robust refinement (Cauchy, ``refine_scale`` x the gate)
+    # of its nearest candidates, without RANSAC
+    solver: str = "ransac"
+    refine_scale: float = 0.25
 
 
 @dataclass
@@ -264,16 +270,22 @@ def line_priors(name: str, est: dict, points, k: int) -> list:
 
 
 def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: LocalizationConfig) -> Optional[dict]:
-    """The best PnPL pose over ``priors`` with wide-gate line candidates (:class:`LineRescueConfig`), or None."""
+    """The best PnPL pose over ``priors`` with wide-gate line candidates (:class:`LineRescueConfig`), or None.
+
+    The refinement solver finds the map lines a start sees (the plane occlusion test) once per start: its narrower
+    stages move the pose by centimetres. RANSAC's pose may lie far from its start, and is tested anew.
+    """
     rc = conf.line_rescue
+    priors = distinct_poses(priors, rc.same_pose_m, rc.same_pose_deg)
+    if rc.solver == "refine":
+        return _rescue_by_refinement(pm, lines2d, priors, lq, camera, conf)
+    if rc.solver != "ransac":
+        raise ValueError(f"unknown line rescue solver {rc.solver!r} (ransac, refine)")
     plconf = replace(conf.point_line_pose, seed=conf.seed, max_iterations=rc.max_iterations, max_reproj_error=rc.max_point_error,
                      min_iterations=min(conf.point_line_pose.min_iterations, rc.max_iterations))
     best, best_score = None, -1
-    priors = distinct_poses(priors, rc.same_pose_m, rc.same_pose_deg)
-    for stage, (px, deg, *k) in enumerate(rc.gates):
-        qconf = replace(conf.line_query, method="projection", max_dist_px=float(px), max_angle_deg=float(deg),
-                        max_candidates=int(k[0]) if k else rc.candidates, min_margin=0.0, one_to_one=False,
-                        min_length_px=max(rc.min_length_px, conf.line_query.min_length_px))
+    for stage, gate in enumerate(rc.gates):
+        qconf = _rescue_query(conf, gate)
         for T0 in (priors if stage == 0 else [best["cam_from_world"]] if best is not None else []):
             m = lq.match(lines2d, T0, camera, qconf)
             r = estimate_pose_point_line(pm.p2d, pm.p3d, m["lines2d"], m["lines3d"], camera, conf=plconf)
@@ -282,6 +294,40 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
             score = r["n_inliers"] + r["n_line_inliers"]
             if score > best_score or stage > 0:  # a later stage refines the best pose with narrower gates
                 best, best_score = r, score
+    return best
+
+
+def _rescue_query(conf: LocalizationConfig, gate) -> LineQueryConfig:
+    """The line query of one rescue stage, ``gate`` = (px, deg[, candidates])."""
+    rc = conf.line_rescue
+    px, deg, *k = gate
+    return replace(conf.line_query, method="projection", max_dist_px=float(px), max_angle_deg=float(deg),
+                   max_candidates=int(k[0]) if k else rc.candidates, min_margin=0.0, one_to_one=False,
+                   min_length_px=max(rc.min_length_px, conf.line_query.min_length_px))
+
+
+def _rescue_by_refinement(pm, lines2d, priors: list, lq: LineQuery, camera, conf: LocalizationConfig) -> Optional[dict]:
+    """``rescue_pose`` with ``solver="refine"``: every start through every stage, each a robust refinement."""
+    rc = conf.line_rescue
+    best, best_score = None, -1
+    for T in priors:
+        vis, r = lq.visible_lines(T, camera, conf.line_query.occlusion_tol), None
+        for gate in rc.gates:
+            m = lq.match(lines2d, T, camera, _rescue_query(conf, gate), vis)
+            if len(m["line_idx"]) < conf.point_line_pose.min_lines:
+                r = None
+                break
+            r = refine_pose_point_line(pm.p2d, pm.p3d, m["lines2d"], m["lines3d"], camera, T,
+                                       point_scale=rc.max_point_error / 2, line_scale=rc.refine_scale * gate[0],
+                                       max_reproj_error=rc.max_point_error, max_line_error=conf.point_line_pose.max_line_error)
+            if not r["success"]:
+                break
+            T = r["cam_from_world"]
+        if r is None or not r["success"] or r["n_line_inliers"] < rc.min_line_inliers:
+            continue
+        score = r["n_inliers"] + r["n_line_inliers"]
+        if score > best_score:
+            best, best_score = r, score
     return best
 
 

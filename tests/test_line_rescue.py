@@ -2,6 +2,7 @@
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from lipmap.poses import make_T, pose_errors
@@ -187,3 +188,69 @@ def test_each_rescue_stage_takes_its_own_number_of_candidates():
     r = rescue_pose(pm, l2, [_off(T, 8, 3)], lq, CAM, replace(LocalizationConfig(), line_rescue=rescue))
     assert used == [3, 1]  # the first stage the default's 3, the second its own 1
     assert r is not None and pose_errors(T, r["cam_from_world"])[0] < 0.005
+
+
+def test_robust_refinement_ignores_outlying_lines_and_counts_inliers():
+    from localization.estimate import refine_pose_point_line
+
+    T, ends, l2, pm = _scene(6, n_lines=40, n_pts=6)
+    bad = l2.copy()
+    d = bad[:10, 2:] - bad[:10, :2]
+    nrm = np.c_[-d[:, 1], d[:, 0]] / np.linalg.norm(d, axis=1, keepdims=True)
+    bad[:10] += 15 * np.tile(nrm, 2)  # 10 lines moved 15 px off, across their direction
+    start = _off(T, 3, 1)
+    args = (pm.p2d, pm.p3d, bad.reshape(-1, 2, 2), ends, CAM, start)
+    r = refine_pose_point_line(*args, point_scale=3.0, line_scale=3.0, max_reproj_error=6.0, max_line_error=2.0)
+    dt, dr = pose_errors(T, r["cam_from_world"])
+    assert r["success"] and dt < 0.003 and dr < 0.1
+    assert r["n_inliers"] == 6 and not r["line_inliers"][:10].any() and r["line_inliers"][10:].mean() > 0.9
+    # the scales are pixels: at 100 px the outliers pull the pose
+    loose = refine_pose_point_line(*args, point_scale=100.0, line_scale=100.0, max_reproj_error=6.0, max_line_error=2.0)
+    assert pose_errors(T, loose["cam_from_world"])[0] > 3 * dt
+
+
+def test_rescue_by_refinement_recovers_the_pose_and_tests_visibility_once_per_start():
+    for seed in range(3):
+        T, ends, l2, pm = _scene(seed)
+        lq = LineQuery(ends)
+        calls = []
+        vis = lq.visible_lines
+        lq.visible_lines = lambda *a, **k: calls.append(1) or vis(*a, **k)
+        rescue = LineRescueConfig(weak_inliers=12, solver="refine", gates=((30, 5, 1), (15, 3, 1), (8, 3, 1)))
+        r = rescue_pose(pm, l2, [_off(T, 60, 40), _off(T, 8, 3)], lq, CAM, replace(LocalizationConfig(), line_rescue=rescue))
+        assert r is not None and r["n_line_inliers"] >= 8
+        dt, dr = pose_errors(T, r["cam_from_world"])
+        assert dt < 0.005 and dr < 0.2
+        assert len(calls) == 2  # one per start, not per stage
+
+
+def test_unknown_rescue_solver_is_refused():
+    T, ends, l2, pm = _scene(0)
+    conf = replace(LocalizationConfig(), line_rescue=LineRescueConfig(solver="icp"))
+    with pytest.raises(ValueError, match="icp"):
+        rescue_pose(pm, l2, [T], LineQuery(ends), CAM, conf)
+
+
+def test_coarse_scoring_pass_keeps_the_best_hypothesis_and_narrows_the_second_pass():
+    from localization import hypotheses as H
+
+    T, ends, l2, pm = _scene(3, n_lines=60, n_pts=6)
+    p2d = pm.p2d[:5].copy()
+    p2d[3:] += [[80, -40], [-60, 70]]
+    sizes = []
+    score = H.LineEvidence.score
+
+    def spy(self, poses, lines3d):
+        sizes.append((len(poses), len(lines3d)))
+        return score(self, poses, lines3d)
+
+    H.LineEvidence.score = spy
+    try:
+        one = H.line_verified_poses(p2d, pm.p3d[:5], l2, ends, CAM, H.HypothesisConfig(box_margin=5.0, coarse_lines=0))
+        n_one = len(sizes)
+        two = H.line_verified_poses(p2d, pm.p3d[:5], l2, ends, CAM,
+                                    H.HypothesisConfig(box_margin=5.0, coarse_lines=20, coarse_keep=4))
+    finally:
+        H.LineEvidence.score = score
+    assert n_one == 1 and sizes[1][1] == 20 and sizes[2] == (4, 60)
+    assert pose_errors(T, one[0])[0] < 1e-6 and pose_errors(T, two[0])[0] < 1e-6
