@@ -1,14 +1,15 @@
 """Where a query's line stage spends its time, component by component, on one scene.
 
     python benchmarks/perf/bench_line_stage.py --dataset 7scenes --root DATA/heldout --scene redkitchen-heldout \
-        --out OUT --pose-source sfm --matches 10 [--runs 3] [--match-seeds 0,1,2,3,4]
+        --out OUT --pose-source sfm --matches 10 [--runs 3] [--match-seeds 0,1,2,3,4] [--config JSON --tag TAG]
 
 The map, point map and query lines come from a ``lipmap-loc eval`` run into OUT with the default settings (built
 there when missing), as in ``benchmarks/localization_variants.py``. Every query of every draw is localized with the
 defaults while the parts of the line stage are timed:
 
 * ``hypotheses``: P3P poses of the point matches scored by the map lines (weak queries only);
-* ``rescue query`` / ``rescue PnPL``: the wide-gate line query and PoseLib's PnPL RANSAC of each rescue start;
+* ``rescue query`` / ``rescue PnPL``: the wide-gate line queries (with their visibility tests) and PoseLib's PnPL
+  RANSAC (or, with ``solver="refine"``, its robust refinement) of each rescue start;
 * ``visibility``, ``narrow query``, ``narrow PnPL``: the narrowing rounds every query goes through.
 
 Per query the parts add up to its line stage (``line_stage_ms`` of the eval's records) up to the glue between them.
@@ -17,6 +18,7 @@ Figures are medians over queries (rescued and not rescued apart), then the media
 """
 from __future__ import annotations
 
+import json
 import statistics
 import sys
 import time
@@ -42,14 +44,15 @@ class PartTimer:
     def __init__(self, lq):
         import localization.pipeline as P
 
-        self.P, self.lq, self.t, self.in_rescue = P, lq, defaultdict(float), False
-        self.saved = [(P, "line_verified_poses"), (P, "estimate_pose_point_line"), (P, "rescue_pose"),
-                      (lq, "match"), (lq, "visible_lines")]
+        self.P, self.lq, self.t, self.in_rescue, self.depth = P, lq, defaultdict(float), False, 0
+        self.saved = [(P, "line_verified_poses"), (P, "estimate_pose_point_line"), (P, "refine_pose_point_line"),
+                      (P, "rescue_pose"), (lq, "match"), (lq, "visible_lines")]
         self.originals = [getattr(o, n) for o, n in self.saved]
         self._wrap(P, "line_verified_poses", lambda: "hypotheses")
         self._wrap(P, "estimate_pose_point_line", lambda: "rescue PnPL" if self.in_rescue else "narrow PnPL")
         self._wrap(lq, "match", lambda: "rescue query" if self.in_rescue else "narrow query")
-        self._wrap(lq, "visible_lines", lambda: None if self.in_rescue else "visibility")
+        self._wrap(P, "refine_pose_point_line", lambda: "rescue PnPL")
+        self._wrap(lq, "visible_lines", lambda: "rescue query" if self.in_rescue else "visibility")
         rescue = P.rescue_pose
 
         def flagged(*a, **k):
@@ -65,12 +68,14 @@ class PartTimer:
         f = getattr(owner, name)
 
         def timed(*a, **k):
-            key = part()
+            key = part() if self.depth == 0 else None  # a call inside a timed one (visibility in a query) counts there
+            self.depth += 1
             t = time.perf_counter()
             try:
                 return f(*a, **k)
             finally:
-                if key is not None:  # the rescue's own visibility tests count in its query
+                self.depth -= 1
+                if key is not None:
                     self.t[key] += (time.perf_counter() - t) * 1000
 
         setattr(owner, name, timed)
@@ -115,7 +120,7 @@ def main(argv=None):
     from lipmap.datasets import load_scene
     from localization.cli import _mapping_conf
     from localization.pipeline import LocalizationConfig
-    from localization_variants import eval_inputs
+    from localization_variants import eval_inputs, variant_config
 
     ap = results.scene_parser(__doc__)
     ap.add_argument("--pose-source", default="posetxt")
@@ -123,6 +128,8 @@ def main(argv=None):
     ap.add_argument("--match-seeds", default="0,1,2,3,4")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--tag", default="", help="suffix of the results file (e.g. the commit of another checkout)")
+    ap.add_argument("--config", default="{}", metavar="JSON",
+                    help="overrides of LocalizationConfig, as a variant of localization_variants.py")
     args = ap.parse_args(argv)
 
     scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source)
@@ -131,6 +138,8 @@ def main(argv=None):
                               mapping=_mapping_conf(Namespace(preset=LocalizationConfig().mapping, keyframes=None)))
     points, linemap, lq, lines = eval_inputs(scene, scene_dir, base)
     seeds = [int(s) for s in args.match_seeds.split(",")] if args.matches else [0]
+    over = json.loads(args.config)
+    base = variant_config(base, over)
     run_once(scene, points, lq, lines, base, seeds[:1])  # warm-up: caches, imports
     runs = [run_once(scene, points, lq, lines, base, seeds) for _ in range(args.runs)]
     out, rows = {}, []
@@ -141,7 +150,7 @@ def main(argv=None):
         print(f"{args.scene}, {args.matches or 'all'} matches, {group} ({out[group]['queries']} per run): median ms "
               + ", ".join(f"{k} {out[group][k]:.1f}" for k in ("line stage", *PARTS)))
     results.write(f"perf-line-stage-{args.scene}-{args.matches or 'all'}" + (f"-{args.tag}" if args.tag else ""),
-                  {"scene": args.scene, "dataset": args.dataset, "pose_source": args.pose_source, "matches": args.matches,
+                  {"scene": args.scene, "dataset": args.dataset, "overrides": over, "pose_source": args.pose_source, "matches": args.matches,
                    "match_seeds": seeds, "runs": args.runs, "map_lines": len(linemap), "median_ms": out,
                    "table": {"header": HEADER, "rows": rows}})
 
