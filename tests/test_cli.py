@@ -88,3 +88,15 @@ def test_eval_bad_line_rescue(tmp_path, capsys):
     assert main(["eval", "--dataset", "synthetic", "--out", str(tmp_path), "--line-rescue", "-1"]) == 2
     assert "--line-rescue takes a number of inliers >= 0" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # refused before any work
+
+
+def test_eval_options_set_the_rescue():
+    from localization.cli import build_parser, eval_config
+
+    def conf(*opts):
+        return eval_config(build_parser().parse_args(["eval", "--dataset", "synthetic", "--out", "x", *opts]))
+
+    assert conf().line_rescue.solver == "ransac" and conf().line_rescue.weak_inliers == 20
+    assert conf("--rescue-solver", "refine").line_rescue.solver == "refine"
+    assert conf("--line-rescue", "0", "--line-query", "raycast").line_rescue.weak_inliers == 0
+    assert conf("--line-query", "raycast").line_query.method == "raycast"

@@ -216,7 +216,7 @@ def test_rescue_by_refinement_recovers_the_pose_and_tests_visibility_once_per_st
         calls = []
         vis = lq.visible_lines
         lq.visible_lines = lambda *a, **k: calls.append(1) or vis(*a, **k)
-        rescue = LineRescueConfig(weak_inliers=12, solver="refine", gates=((30, 5, 1), (15, 3, 1), (8, 3, 1)))
+        rescue = LineRescueConfig(weak_inliers=12, solver="refine")
         r = rescue_pose(pm, l2, [_off(T, 60, 40), _off(T, 8, 3)], lq, CAM, replace(LocalizationConfig(), line_rescue=rescue))
         assert r is not None and r["n_line_inliers"] >= 8
         dt, dr = pose_errors(T, r["cam_from_world"])
