@@ -152,6 +152,26 @@ class PointLinePoseConfig:
     bundle: dict = field(default_factory=dict)
 
 
+def _point_line_input(p2d, p3d, lines2d, lines3d):
+    """float64 (N, 2), (N, 3), (M, 2, 2), (M, 2, 3) arrays, and the result of a call that finds no pose."""
+    p2d = np.asarray(p2d, dtype=np.float64).reshape(-1, 2)
+    p3d = np.asarray(p3d, dtype=np.float64).reshape(-1, 3)
+    l2 = np.asarray(lines2d, dtype=np.float64).reshape(-1, 2, 2)
+    l3 = np.asarray(lines3d, dtype=np.float64).reshape(-1, 2, 3)
+    fail = {"cam_from_world": None, "success": False, "n_inliers": 0, "n_line_inliers": 0,
+            "line_inliers": np.zeros(len(l2), bool), "inliers": np.zeros(len(p2d), bool), "n_lines": len(l2)}
+    return p2d, p3d, l2, l3, fail
+
+
+def _camera_pose(T: np.ndarray):
+    """A (4, 4) cam_from_world as PoseLib's CameraPose."""
+    import poselib
+
+    pose = poselib.CameraPose()
+    pose.R, pose.t = np.asarray(T[:3, :3], dtype=np.float64), np.asarray(T[:3, 3], dtype=np.float64)
+    return pose
+
+
 def estimate_pose_point_line(
     p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, lines3d: np.ndarray, camera,
     initial: Optional[np.ndarray] = None, conf: Optional[PointLinePoseConfig] = None,
@@ -168,13 +188,8 @@ def estimate_pose_point_line(
         **line_inliers** (M,) bool, **n_lines**; never raises for a bad query.
     """
     conf = conf or PointLinePoseConfig()
-    p2d = np.asarray(p2d, dtype=np.float64).reshape(-1, 2)
-    p3d = np.asarray(p3d, dtype=np.float64).reshape(-1, 3)
-    l2 = np.asarray(lines2d, dtype=np.float64).reshape(-1, 2, 2)
-    l3 = np.asarray(lines3d, dtype=np.float64).reshape(-1, 2, 3)
+    p2d, p3d, l2, l3, fail = _point_line_input(p2d, p3d, lines2d, lines3d)
     n, m = len(p2d), len(l2)
-    fail = {"cam_from_world": None, "success": False, "n_inliers": 0, "n_line_inliers": 0,
-            "line_inliers": np.zeros(m, bool), "n_lines": m}
     okp = np.isfinite(p2d).all(1) & np.isfinite(p3d).all(1)
     okl = np.isfinite(l2).all((1, 2)) & np.isfinite(l3).all((1, 2))
     if okl.sum() < conf.min_lines:
@@ -193,10 +208,7 @@ def estimate_pose_point_line(
     }
     kw = {}
     if initial is not None and np.all(np.isfinite(initial)):
-        init = poselib.CameraPose()
-        init.R = np.asarray(initial[:3, :3], dtype=np.float64)
-        init.t = np.asarray(initial[:3, 3], dtype=np.float64)
-        kw["initial_pose"] = init
+        kw["initial_pose"] = _camera_pose(initial)
     li = np.flatnonzero(okl)
     pi = np.flatnonzero(okp)
     try:
@@ -214,7 +226,7 @@ def estimate_pose_point_line(
     pt_inl[pi] = np.asarray(info.get("inliers_points", info.get("inliers", np.zeros(len(pi)))), dtype=bool)
     ok = bool(np.all(np.isfinite(T)) and pt_inl.sum() + line_inl.sum() >= 4)
     return {"cam_from_world": T if np.all(np.isfinite(T)) else None, "success": ok, "n_inliers": int(pt_inl.sum()),
-            "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": m}
+            "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": len(l2)}
 
 
 def refine_pose_point_line(
@@ -235,21 +247,12 @@ def refine_pose_point_line(
     """
     import poselib
 
-    p2d = np.asarray(p2d, dtype=np.float64).reshape(-1, 2)
-    p3d = np.asarray(p3d, dtype=np.float64).reshape(-1, 3)
-    l2 = np.asarray(lines2d, dtype=np.float64).reshape(-1, 2, 2)
-    l3 = np.asarray(lines3d, dtype=np.float64).reshape(-1, 2, 3)
-    n, m = len(p2d), len(l2)
-    fail = {"cam_from_world": None, "success": False, "n_inliers": 0, "n_line_inliers": 0,
-            "line_inliers": np.zeros(m, bool), "inliers": np.zeros(n, bool), "n_lines": m}
-    if n + m < 4:
+    p2d, p3d, l2, l3, fail = _point_line_input(p2d, p3d, lines2d, lines3d)
+    if len(p2d) + len(l2) < 4:
         return {**fail, "reason": "fewer than 4 correspondences"}
-    init = poselib.CameraPose()
-    init.R, init.t = np.asarray(initial[:3, :3], np.float64), np.asarray(initial[:3, 3], np.float64)
-    cam = _camera_dict(camera)
     try:
         pose, _ = poselib.refine_absolute_pose_pnpl(
-            p2d, p3d, l2[:, 0], l2[:, 1], l3[:, 0], l3[:, 1], init, cam,
+            p2d, p3d, l2[:, 0], l2[:, 1], l3[:, 0], l3[:, 1], _camera_pose(initial), _camera_dict(camera),
             {"loss_type": "CAUCHY", "loss_scale": float(point_scale)},
             {"loss_type": "CAUCHY", "loss_scale": float(line_scale)})
     except Exception as e:  # malformed input only
@@ -258,10 +261,10 @@ def refine_pose_point_line(
     T = make_T(np.asarray(pose.R), np.asarray(pose.t))
     if not np.all(np.isfinite(T)):
         return {**fail, "reason": "refinement diverged"}
-    uv, z = geo.project_points(p3d, T, camera) if n else (np.zeros((0, 2)), np.zeros(0))
+    uv, z = geo.project_points(p3d, T, camera) if len(p3d) else (np.zeros((0, 2)), np.zeros(0))
     pt_inl = (np.asarray(z) > 0) & (np.linalg.norm(np.asarray(uv) - p2d, axis=1) <= max_reproj_error)
     proj, valid = geo.project_segments(l3, T, camera)
     with np.errstate(invalid="ignore"):
         line_inl = valid & (geo.perpendicular_distance(proj, l2, "max") <= max_line_error)
     return {"cam_from_world": T, "success": bool(pt_inl.sum() + line_inl.sum() >= 4), "n_inliers": int(pt_inl.sum()),
-            "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": m}
+            "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": len(l2)}
