@@ -83,6 +83,32 @@ def scene_key(scene, views=None) -> dict:
     }
 
 
+# the modules whose code makes a line map (and its planes): a map made by other code is not reused. Viewers,
+# evaluation and the artifact plumbing are left out, so changing them keeps the maps
+MAPPING_CODE = ("mapping", "planes", "datasets", "lines2d.py", "lift.py", "linemap.py", "geometry.py", "normals.py",
+                "frames.py", "imageio.py", "poses.py", "scene.py", "presets.py")
+
+
+def source_digest(packages, only: Optional[tuple] = None) -> str:
+    """Digest of the ``.py`` files (relative path and bytes) of ``packages`` (folders), restricted to the top-level
+    entries ``only`` (sub-folder or file names) when given."""
+    h = hashlib.sha256()
+    for pkg in packages:
+        pkg = Path(pkg)
+        for f in sorted(pkg.rglob("*.py")):
+            rel = f.relative_to(pkg)
+            if only is not None and rel.parts[0] not in only:
+                continue
+            h.update(f"{pkg.name}/{rel.as_posix()}".encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def mapping_code_digest() -> str:
+    """:func:`source_digest` of the ``lipmap`` modules in :data:`MAPPING_CODE`."""
+    return source_digest([Path(__file__).parent], MAPPING_CODE)
+
+
 @dataclass(frozen=True)
 class Stamp:
     """``step`` name and the JSON-able ``settings`` (including input keys) that made an artifact."""

@@ -375,13 +375,14 @@ def _merge(lines: np.ndarray, obs: list, per_view: list, conf: LiftConfig):
 def main(scene_views: Sequence, lines_h5, out_h5, conf: Union[None, str, dict, LiftConfig] = None,
          overwrite: bool = False) -> Path:
     """Step entry: lift lines and write ``linemap.h5`` (reused when the same settings and lines made it)."""
-    from .artifacts import Stamp, read_stamp, reuse, views_key
+    from .artifacts import Stamp, mapping_code_digest, read_stamp, reuse, views_key
 
     out_h5 = Path(out_h5)
     conf = get_conf(conf)
     lines_stamp = read_stamp(lines_h5)
     stamp = Stamp("linemap", {"method": "lift", "lift": asdict(conf), "views": views_key(scene_views),
-                              "lines": lines_stamp.digest if lines_stamp else str(Path(lines_h5).resolve())})
+                              "lines": lines_stamp.digest if lines_stamp else str(Path(lines_h5).resolve()),
+                              "code": mapping_code_digest()})
     if reuse(out_h5, stamp, overwrite, "lift"):
         return out_h5
     logger.info("Lifting lines with %s.", json.dumps(asdict(conf)))

@@ -29,7 +29,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lipmap import InputError, logger
-from lipmap.artifacts import Stamp, digest, scene_key, variant_dir, views_key
+from lipmap.artifacts import Stamp, digest, scene_key, source_digest, variant_dir, views_key
 from lipmap.imageio import write_text_atomic
 from lipmap.poses import pose_errors
 
@@ -531,12 +531,7 @@ def code_digest() -> str:
     """Digest of the source of the ``lipmap`` and ``localization`` packages (every ``.py`` file, path and bytes)."""
     import lipmap
 
-    h = hashlib.sha256()
-    for pkg in (Path(lipmap.__file__).parent, Path(__file__).parent):
-        for f in sorted(pkg.rglob("*.py")):
-            h.update(f"{pkg.name}/{f.relative_to(pkg).as_posix()}".encode())
-            h.update(f.read_bytes())
-    return h.hexdigest()[:12]
+    return source_digest([Path(lipmap.__file__).parent, Path(__file__).parent])
 
 
 def _journal_digest(scene, conf: LocalizationConfig, map_info: dict, points, qlines_h5: Path) -> str:

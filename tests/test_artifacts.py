@@ -80,3 +80,30 @@ def test_input_keys_change_with_poses_and_pose_source(tmp_path):
     a.pose_source = "posetxt"
     assert scene_key(a) != scene_key(b)
     assert variant_dir(tmp_path, "map-lift-fast", Stamp("linemap", scene_key(a))).name.startswith("map-lift-fast-")
+
+
+def test_source_digest_follows_the_code_it_covers_only(tmp_path):
+    from lipmap.artifacts import source_digest
+
+    pkg = tmp_path / "pkg"
+    (pkg / "sub").mkdir(parents=True)
+    for rel, text in (("a.py", "A = 1\n"), ("sub/b.py", "B = 1\n"), ("viz.py", "V = 1\n")):
+        (pkg / rel).write_text(text)
+    only = ("a.py", "sub")
+    d0, all0 = source_digest([pkg], only), source_digest([pkg])
+    (pkg / "viz.py").write_text("V = 2\n")
+    assert source_digest([pkg], only) == d0 and source_digest([pkg]) != all0
+    (pkg / "sub" / "b.py").write_text("B = 2\n")
+    assert source_digest([pkg], only) != d0
+
+
+def test_the_mapping_code_names_modules_that_exist():
+    from pathlib import Path
+
+    import lipmap
+    from lipmap.artifacts import MAPPING_CODE
+
+    root = Path(lipmap.__file__).parent
+    assert all((root / name).exists() for name in MAPPING_CODE)
+    # what makes a map is covered: every module the mapping pipeline imports from lipmap
+    assert {"mapping", "planes", "lines2d.py", "lift.py", "geometry.py"} <= set(MAPPING_CODE)

@@ -171,6 +171,25 @@ def test_map_into_a_folder_made_with_other_settings_stops_naming_both(mini_root,
     assert path.stat().st_mtime_ns == mtime  # nothing was touched
 
 
+def test_a_map_made_by_other_mapping_code_is_not_reused(mini_root, tmp_path, monkeypatch):
+    """The map's stamp holds the digest of the code that makes maps: after a change there the map is made again,
+    and a folder holding the old one stops with the difference named; a change elsewhere keeps it."""
+    import lipmap.artifacts as art
+    from lipmap.artifacts import StaleArtifactError
+    from lipmap.datasets import load_scene
+    from lipmap.mapping.pipeline import map_scene, mapping_stamp
+
+    scene = load_scene("synthetic", mini_root, "room-s1")
+    path = map_scene(scene, tmp_path / "m", "quick", "lift")
+    before = mapping_stamp(scene, "quick", "lift")
+    monkeypatch.setattr(art, "MAPPING_CODE", art.MAPPING_CODE[:-1])  # as if presets.py were not mapping code
+    assert mapping_stamp(scene, "quick", "lift").digest != before.digest
+    with pytest.raises(StaleArtifactError, match=r"code: '[0-9a-f]+' -> '[0-9a-f]+'"):
+        map_scene(scene, tmp_path / "m", "quick", "lift")
+    monkeypatch.undo()
+    assert map_scene(scene, tmp_path / "m", "quick", "lift") == path  # the same code: reused
+
+
 def test_a_journal_is_not_resumed_by_other_code(mini_root, tmp_path, monkeypatch):
     """The journal resumes the same code's run; after a code change the queries are localized again (their
     poses and timings would otherwise be the old code's)."""

@@ -17,7 +17,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from .. import logger
-from ..artifacts import Stamp, reuse, scene_key, variant_dir
+from ..artifacts import Stamp, mapping_code_digest, reuse, scene_key, variant_dir
 from ..errors import InputError
 from ..linemap import edge_line_mask  # noqa: F401 - its home is the artifact; kept importable from here
 from ..presets import resolve
@@ -86,7 +86,8 @@ def lines_settings(conf: MappingConfig, lines_source=None) -> dict:
 def mapping_stamp(scene, conf=None, method: str = "lipmap", lines_source=None) -> Stamp:
     """The :class:`~lipmap.artifacts.Stamp` of the ``linemap.h5`` that :func:`map_scene` would build."""
     conf = get_conf(conf)
-    settings = {"method": method, "lines": lines_settings(conf, lines_source), "scene": scene_key(scene)}
+    settings = {"method": method, "lines": lines_settings(conf, lines_source), "scene": scene_key(scene),
+                "code": mapping_code_digest()}
     if method == "lift":
         from ..lift import get_conf as lift_conf
 
