@@ -5,6 +5,12 @@ With ten 2D-3D point matches, a wrong P3P pose often explains as many of them as
 of every triple of matches is scored by how many map lines it projects onto detected lines of the same
 direction; the detections are looked up through one mask per direction bin of the pixels near them. The best few
 poses then start the wide-gate line rescue (:func:`localization.pipeline.rescue_pose`).
+
+P3P needs three right matches among the few. Lines give two more constraints on their own: an indoor map's lines
+run mostly along a few directions, and a query's long lines meet at their vanishing points. Aligning the query's
+strongest vanishing point with one of the map's dominant directions leaves a rotation about that axis and the
+translation, which two point matches fix (PoseLib's upright 2-point solver, ``up2p``, in frames where the aligned
+direction is the y axis). Those poses join the P3P ones before the line scoring (``HypothesisConfig.upright``).
 """
 from __future__ import annotations
 
@@ -36,6 +42,20 @@ class HypothesisConfig:
     coarse_keep: int = 10
     min_length_px: float = 20.0  # shorter detections and projections are left out (as the line query)
     box_margin: float = 0.5  # m: a hypothesis' camera lies within the map lines' box grown by this
+    # two-point poses with the query's strongest vanishing points aligned to the map's dominant line directions
+    # (module docstring): a pose from two right matches where P3P needs three
+    upright: bool = True
+    vp_count: int = 2  # the query's strongest vanishing points tried (the first is usually right, README)
+    map_directions: int = 3  # the map's dominant line directions each is aligned with (both signs)
+    vp_tol_deg: float = 1.5  # a query line points at a vanishing point within this
+    vp_min_length_px: float = 30.0  # shorter query lines do not vote for vanishing points
+    vp_iterations: int = 500  # pairs of lines sampled per vanishing point
+    direction_tol_deg: float = 3.0  # map lines within this of a direction count for it
+    max_pairs: int = 45  # pairs of point matches per alignment (all when fewer; a seeded sample otherwise)
+    max_upright: int = 40  # of those poses, the ones with the most point inliers are scored by lines
+    # ... tried only when no P3P pose explains this many matches (0: always): a pose that explains more than
+    # its own triple is usually right, and the two-point poses then cost time for nothing
+    upright_below: int = 5
 
 
 def _bearings(p2d: np.ndarray, camera) -> np.ndarray:
@@ -68,11 +88,131 @@ def p3p_hypotheses(p2d: np.ndarray, p3d: np.ndarray, camera, conf: HypothesisCon
     if not poses:
         return np.zeros((0, 4, 4)), np.zeros(0, np.int64)
     poses = np.array(poses)
+    return poses, point_inliers(poses, p2d, p3d, camera, conf.max_point_error)
+
+
+def _pairs(n: int, k: int, rng) -> np.ndarray:
+    """All pairs of ``n`` indices when there are at most ``k``, else ``k`` seeded random ones: (P, 2)."""
+    if n < 2:
+        return np.zeros((0, 2), np.int64)
+    if n * (n - 1) // 2 <= k:
+        return np.array(list(combinations(range(n), 2)))
+    out = np.array([rng.choice(n, 2, replace=False) for _ in range(k)])
+    return np.sort(out, axis=1)
+
+
+def dominant_directions(lines3d: np.ndarray, k: int, tol_deg: float = 3.0) -> np.ndarray:
+    """The ``k`` line directions that the most line length runs along, each at least 10 deg from the earlier ones.
+
+    Each direction is the principal axis of the (length-weighted) directions within ``tol_deg`` of the best
+    candidate, the candidates being the 400 longest lines' own directions.
+
+    Args:
+        lines3d: :math:`(L, 2, 3)` segments.
+
+    Returns:
+        :math:`(K, 3)` unit directions (K <= k; fewer when the lines run along fewer).
+    """
+    L = np.asarray(lines3d, dtype=float).reshape(-1, 2, 3)
+    d = L[:, 1] - L[:, 0]
+    w = np.linalg.norm(d, axis=1)
+    ok = w > 1e-9
+    d, w = d[ok] / w[ok, None], w[ok]
+    cand = d[np.argsort(-w, kind="stable")[:400]]
+    close = np.abs(cand @ d.T) > np.cos(np.radians(tol_deg))  # (C, L)
+    score = close.astype(float) @ w
+    out = []
+    for _ in range(k):
+        if out:
+            far = np.all(np.abs(cand @ np.array(out).T) < np.cos(np.radians(10.0)), axis=1)
+            score = np.where(far, score, -1.0)
+        if len(cand) == 0 or score.max() <= 0:
+            break
+        m = close[int(np.argmax(score))]
+        out.append(np.linalg.eigh((d[m] * w[m, None]).T @ d[m])[1][:, -1])
+    return np.array(out).reshape(-1, 3)
+
+
+def vanishing_points(lines2d: np.ndarray, camera, conf: HypothesisConfig, seed: int = 0) -> np.ndarray:
+    """The query's ``conf.vp_count`` strongest vanishing points, as unit directions in the camera frame.
+
+    A vanishing point is the direction that the interpretation planes of the most line length (lines of at least
+    ``vp_min_length_px``) contain within ``vp_tol_deg``: seeded RANSAC over pairs of lines, then the least-squares
+    direction of its lines. Each next one is sought among the lines the earlier ones left.
+
+    Returns:
+        :math:`(V, 3)` (V <= vp_count), sign arbitrary.
+    """
+    L = np.asarray(lines2d, dtype=float).reshape(-1, 4)
+    w = np.linalg.norm(L[:, 2:] - L[:, :2], axis=1)
+    L, w = L[w >= conf.vp_min_length_px], w[w >= conf.vp_min_length_px]
+    if len(L) < 2:
+        return np.zeros((0, 3))
+    n = np.cross(geo.unproject_points(L[:, :2], 1.0, camera), geo.unproject_points(L[:, 2:], 1.0, camera))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    tol = np.sin(np.radians(conf.vp_tol_deg))
+    rng = np.random.default_rng(seed)
+    alive, out = np.ones(len(n), bool), []
+    for _ in range(conf.vp_count):
+        idx = np.flatnonzero(alive)
+        if len(idx) < 2:
+            break
+        ij = rng.integers(0, len(idx), (conf.vp_iterations, 2))
+        v = np.cross(n[idx[ij[:, 0]]], n[idx[ij[:, 1]]])
+        nv = np.linalg.norm(v, axis=1)
+        v = v[nv > 1e-9] / nv[nv > 1e-9, None]
+        if len(v) == 0:
+            break
+        votes = (np.abs(n[idx] @ v.T) < tol).astype(float).T @ w[idx]
+        inl = idx[np.abs(n[idx] @ v[int(np.argmax(votes))]) < tol]
+        vp = np.linalg.eigh((n[inl] * w[inl, None]).T @ n[inl])[1][:, 0]  # the direction most orthogonal to their normals
+        out.append(vp)
+        alive &= np.abs(n @ vp) >= 2 * tol
+    return np.array(out).reshape(-1, 3)
+
+
+def upright_hypotheses(p2d: np.ndarray, p3d: np.ndarray, camera, vps: np.ndarray, directions: np.ndarray,
+                       conf: HypothesisConfig, seed: int = 0) -> np.ndarray:
+    """Poses that turn a map direction into a vanishing point, from pairs of point matches (PoseLib ``up2p``).
+
+    For each vanishing point ``a`` (camera frame), map direction ``b`` and sign, rotations ``Qc`` and ``Qw`` take
+    ``a`` and ``b`` to the y axis; ``up2p`` solves the rotation about y and the translation between the rotated
+    frames, and the pose is ``R = Qc^T R_y Qw``, ``t = Qc^T t_y``, so that ``R b = a``.
+
+    Returns:
+        :math:`(H, 4, 4)` cam_from_world.
+    """
+    import poselib
+    from scipy.spatial.transform import Rotation
+
+    pairs = _pairs(len(p2d), conf.max_pairs, np.random.default_rng(seed))
+    if len(pairs) == 0 or len(vps) == 0 or len(directions) == 0:
+        return np.zeros((0, 4, 4))
+    x = _bearings(p2d, camera)
+    y = np.array([[0.0, 1.0, 0.0]])
+    poses = []
+    for a in vps:
+        Qc = Rotation.align_vectors(y, a[None])[0].as_matrix()
+        xr = x @ Qc.T
+        for b in np.concatenate([directions, -directions]):
+            Qw = Rotation.align_vectors(y, b[None])[0].as_matrix()
+            Xr = p3d @ Qw.T
+            for i, j in pairs:
+                for pose in poselib.up2p(xr[[i, j]], Xr[[i, j]]):
+                    T = np.eye(4)
+                    T[:3, :3], T[:3, 3] = Qc.T @ pose.R @ Qw, Qc.T @ pose.t
+                    poses.append(T)
+    return np.array(poses).reshape(-1, 4, 4)
+
+
+def point_inliers(poses: np.ndarray, p2d: np.ndarray, p3d: np.ndarray, camera, max_error: float) -> np.ndarray:
+    """:math:`(H,)` matches each pose :math:`(H, 4, 4)` projects within ``max_error`` px, in front of it."""
+    if len(poses) == 0:
+        return np.zeros(0, np.int64)
     Xc = p3d @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]
     uv, z = geo.project_cam_points(Xc, camera)
     err = np.linalg.norm(uv - p2d[None], axis=-1)
-    inliers = ((z > 0) & (err <= conf.max_point_error)).sum(1)
-    return poses, inliers
+    return ((z > 0) & (err <= max_error)).sum(1)
 
 
 class LineEvidence:
@@ -136,28 +276,38 @@ def scoring_lines(lines3d: np.ndarray, n: int) -> np.ndarray:
 
 
 def line_verified_poses(p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, map_lines: np.ndarray, camera,
-                        conf: HypothesisConfig, seed: int = 0) -> list:
-    """The ``conf.keep`` P3P poses of the point matches that the most map lines agree with, best first.
+                        conf: HypothesisConfig, seed: int = 0, directions: np.ndarray | None = None) -> list:
+    """The ``conf.keep`` poses of the point matches (P3P, and with ``conf.upright`` the vanishing-point-aligned
+    two-point ones) that the most map lines agree with, best first.
 
     Args:
         p2d: (N, 2) COLMAP pixels; p3d: (N, 3) world points; lines2d: (M, 4) query detections;
-        map_lines: (L, 2, 3) the lines that score (:func:`scoring_lines`).
+        map_lines: (L, 2, 3) the lines that score (:func:`scoring_lines`);
+        directions: (K, 3) the map's dominant directions (default: :func:`dominant_directions` of ``map_lines``).
 
     Returns:
         list of (4, 4) cam_from_world.
     """
     p2d = np.asarray(p2d, dtype=float).reshape(-1, 2)
     p3d = np.asarray(p3d, dtype=float).reshape(-1, 3)
-    poses, inl = p3p_hypotheses(p2d, p3d, camera, conf, seed)
-    if len(poses) == 0:
-        return []
     # the camera must stand within the map (its lines' box, with a margin)
     lo, hi = map_lines.reshape(-1, 3).min(0) - conf.box_margin, map_lines.reshape(-1, 3).max(0) + conf.box_margin
-    C = -np.einsum("hji,hj->hi", poses[:, :3, :3], poses[:, :3, 3])
-    inside = np.all((C >= lo) & (C <= hi), axis=1)
-    poses, inl = poses[inside], inl[inside]
-    top = np.argsort(-inl, kind="stable")[: conf.max_hypotheses]
-    poses, inl = poses[top], inl[top]
+
+    def best_inside(poses, inl, k):
+        C = -np.einsum("hji,hj->hi", poses[:, :3, :3], poses[:, :3, 3])
+        inside = np.flatnonzero(np.all((C >= lo) & (C <= hi), axis=1))
+        top = inside[np.argsort(-inl[inside], kind="stable")[:k]]
+        return poses[top], inl[top]
+
+    poses, inl = best_inside(*p3p_hypotheses(p2d, p3d, camera, conf, seed), conf.max_hypotheses)
+    if conf.upright and not (conf.upright_below > 0 and len(inl) and inl.max() >= conf.upright_below):
+        if directions is None:
+            directions = dominant_directions(map_lines, conf.map_directions, conf.direction_tol_deg)
+        up = upright_hypotheses(p2d, p3d, camera, vanishing_points(lines2d, camera, conf, seed), directions, conf, seed)
+        up, up_inl = best_inside(up, point_inliers(up, p2d, p3d, camera, conf.max_point_error), conf.max_upright)
+        poses, inl = np.concatenate([poses, up]), np.concatenate([inl, up_inl])
+    if len(poses) == 0:
+        return []
     evidence = LineEvidence(lines2d, camera, conf)
     if 0 < conf.coarse_lines < len(map_lines) and conf.coarse_keep < len(poses):
         coarse = evidence.score(poses, scoring_lines(map_lines, conf.coarse_lines))

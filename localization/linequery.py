@@ -70,6 +70,17 @@ class LineQuery:
             cache[n, min_support] = scoring_lines(self.lines[self.support >= min_support], n)
         return cache[n, min_support]
 
+    def dominant_directions(self, n: int, min_support: int, k: int, tol_deg: float) -> np.ndarray:
+        """The ``k`` dominant directions (K, 3) of :meth:`scoring_lines` (``n``, ``min_support``), computed once
+        (:func:`localization.hypotheses.dominant_directions`)."""
+        from .hypotheses import dominant_directions
+
+        cache = self.__dict__.setdefault("_directions", {})
+        key = (n, min_support, k, tol_deg)
+        if key not in cache:
+            cache[key] = dominant_directions(self.scoring_lines(n, min_support), k, tol_deg)
+        return cache[key]
+
     @classmethod
     def from_linemap(cls, linemap) -> "LineQuery":
         planes = linemap.planes or {}

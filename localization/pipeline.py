@@ -68,6 +68,7 @@ class LineRescueConfig:
     gates: tuple = ((30.0, 5.0), (15.0, 3.0, 1))
     candidates: int = 3  # per query line, in a stage that does not name its own
     min_length_px: float = 20.0  # query lines shorter than this stay out of the rescue (the line query's own minimum)
+    max_query_lines: int = 0  # only the longest this many query lines enter the rescue (0: all)
     min_line_inliers: int = 6
     max_iterations: int = 1000  # of each start's PnPL RANSAC (2,000 and 10,000: 1.6x and 6x the time, no more accurate)
     # px, the point threshold of a rescued query's PnPL: with ten points a wrong match within 12 px pulls the pose,
@@ -220,8 +221,9 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
         priors = line_priors(name, est, points, rescue.prior_views)
         if rescue.hypotheses.keep > 0:
             hc = rescue.hypotheses
+            dirs = lq.dominant_directions(hc.n_map_lines, hc.min_support, hc.map_directions, hc.direction_tol_deg)
             priors += line_verified_poses(pm.p2d, pm.p3d, lines2d, lq.scoring_lines(hc.n_map_lines, hc.min_support),
-                                          camera, hc, seed=conf.seed)
+                                          camera, hc, seed=conf.seed, directions=dirs)
         r = rescue_pose(pm, lines2d, priors, lq, camera, conf)
         if r is not None:
             T, rescued = r["cam_from_world"], True
@@ -278,6 +280,7 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
     """
     rc = conf.line_rescue
     priors = distinct_poses(priors, rc.same_pose_m, rc.same_pose_deg)
+    lines2d = longest_lines(lines2d, rc.max_query_lines)
     if rc.solver == "refine":
         return _rescue_by_refinement(pm, lines2d, priors, lq, camera, conf)
     if rc.solver != "ransac":
@@ -296,6 +299,15 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
             if score > best_score or stage > 0:  # a later stage refines the best pose with narrower gates
                 best, best_score = r, score
     return best
+
+
+def longest_lines(lines2d: np.ndarray, k: int) -> np.ndarray:
+    """The ``k`` longest of the segments ``lines2d`` (N, 4), in their order (all when ``k`` is 0 or N <= k)."""
+    lines2d = np.asarray(lines2d, dtype=float).reshape(-1, 4)
+    if k <= 0 or len(lines2d) <= k:
+        return lines2d
+    length = np.linalg.norm(lines2d[:, 2:] - lines2d[:, :2], axis=1)
+    return lines2d[np.sort(np.argsort(-length, kind="stable")[:k])]
 
 
 def _rescue_query(conf: LocalizationConfig, gate) -> LineQueryConfig:
