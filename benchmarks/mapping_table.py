@@ -1,7 +1,8 @@
 """The README's mapping table for one scene: lipmap (full map and its plane edges alone) vs lift.
 
     python benchmarks/mapping_table.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
-        --scene redkitchen --out OUT [--preset fast] [--methods lipmap,lift] [--plane-depth-tols 0]
+        --scene redkitchen --out OUT [--preset fast] [--methods lipmap,lift] [--plane-depth-tols 0] \
+        [--pose-source posetxt|dslam|sfm]
 
 Maps with each method into OUT/<method> (an existing linemap.h5 made with the same settings is reused, as
 `lipmap-loc map` does), evaluates against the scene's ground truth (its mesh, else fused depth: the same as
@@ -10,6 +11,9 @@ Maps with each method into OUT/<method> (an existing linemap.h5 made with the sa
 there); the times are the mapping runs' own (linemap.h5 metadata).
 ``--plane-depth-tols`` adds lipmap rows with other ``MappingConfig.plane_depth_tol`` values, built on the
 same planes (OUT/lipmap-tol<value>, reusing OUT/lipmap's planes.h5 and lines2d.h5).
+``--pose-source`` maps (and fuses the ground truth) with another pose source of a 7-Scenes scene: pose.txt
+drifts by centimetres along a sequence, which blurs the fused ground truth and breaks multi-view line tracks;
+the result file then ends in ``-<pose source>``.
 """
 from __future__ import annotations
 
@@ -58,11 +62,14 @@ def main(argv=None):
     ap.add_argument("--plane-depth-tols", default="", help="extra lipmap rows, comma separated metres")
     ap.add_argument("--label", default=None, help="the scene's name in the table (default: scene (ground truth kind))")
     ap.add_argument("--tag", default="", help="suffix of the results file name (e.g. noisy-depth)")
+    ap.add_argument("--pose-source", default="posetxt", help="7-Scenes poses: posetxt | dslam | sfm")
     args = ap.parse_args(argv)
-    scene = load_scene(args.dataset, args.root, args.scene)
+    kw = {} if args.pose_source == "posetxt" else {"pose_source": args.pose_source}
+    scene = load_scene(args.dataset, args.root, args.scene, **kw)
     gt_source = scene_ground_truth(scene)
     gt = load_ground_truth(gt_source)
-    label = args.label or f"{scene.name} ({'mesh' if scene.gt_mesh is not None else 'fused depth'})"
+    gt_kind = "mesh" if scene.gt_mesh is not None else "fused depth" + ("" if not kw else f", {args.pose_source} poses")
+    label = args.label or f"{scene.name} ({gt_kind})"
     rows, metrics = [], {}
 
     def add(name, lm, seconds=None):
@@ -86,8 +93,9 @@ def main(argv=None):
                 add(f"`--plane-depth-tol {tol}`", LineMap.load(map_scene(scene, out, conf, method)))
     print(f"{scene.dataset} {scene.name}:")
     print("\n".join("| " + " | ".join(map(str, r)) + " |" for r in [HEADER, *rows]))
-    name = f"mapping-{scene.dataset}-{scene.name}" + (f"-{args.tag}" if args.tag else "")
+    name = f"mapping-{scene.dataset}-{scene.name}" + "".join(f"-{t}" for t in (args.tag, kw.get("pose_source")) if t)
     results.write(name, {"scene": scene.name, "dataset": scene.dataset, "ground_truth": str(gt_source),
+                         "pose_source": args.pose_source,
                          "metrics": metrics, "table": {"header": HEADER, "rows": rows}})
 
 

@@ -421,7 +421,7 @@ def evaluate_linemap(
     Returns:
         ``{"n_lines", "total_length", "M1": {"line": {acc, comp, prec@t, recall@t, f@t},
         "junction": {...}}, "M2": {"R@5mm", ..., "P@5mm", ..., "supports_images",
-        "supports_lines"}, "gt": {"kind", "n_points"}}``; distances in metres, P in percent.
+        "supports_lines", "supports_images_median"}, "gt": {"kind", "n_points"}}``; distances in metres, P in percent.
     """
     from .linemap import LineMap
 
@@ -455,9 +455,10 @@ def evaluate_linemap(
     if supports is not None and len(supports):
         res["M2"]["supports_images"] = float(np.mean(supports[:, 0]))
         res["M2"]["supports_lines"] = float(np.mean(supports[:, 1]))
+        res["M2"]["supports_images_median"] = float(np.median(supports[:, 0]))
     else:
-        res["M2"]["supports_images"] = float("nan")
-        res["M2"]["supports_lines"] = float("nan")
+        for k in ("supports_images", "supports_lines", "supports_images_median"):
+            res["M2"][k] = float("nan")
     return res
 
 

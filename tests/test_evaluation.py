@@ -125,6 +125,7 @@ class TestPointGT:
         res = json.loads(out.read_text())
         assert res["M2"]["supports_images"] == pytest.approx(4 / 3)
         assert res["M2"]["supports_lines"] == pytest.approx(2.0)
+        assert res["M2"]["supports_images_median"] == 1.0  # images per line: 1, 2, 1
         assert res["M1"]["line"]["prec@0.05"] == 1.0
 
     def test_empty(self):
