@@ -1,4 +1,4 @@
-"""The README's mapping table for one scene: lipmap (full map and its plane edges alone) vs lift.
+"""The README's mapping table for one scene: lipmap (full map, its plane edges and its on-plane lines alone) vs lift.
 
     python benchmarks/mapping_table.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
         --scene redkitchen --out OUT [--preset fast] [--methods lipmap,lift] [--plane-depth-tols 0] \
@@ -83,6 +83,7 @@ def main(argv=None):
             edges = edge_line_mask(lm)
             if not edges.all():
                 add("(its plane edges only)", lm.subset(edges))
+                add("(its on-plane lines only)", lm.subset(~edges))
             for tol in filter(None, args.plane_depth_tols.split(",")):
                 out = args.out / f"lipmap-tol{tol}"
                 out.mkdir(parents=True, exist_ok=True)
