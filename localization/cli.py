@@ -93,6 +93,9 @@ def eval_config(args):
         conf = replace(conf, line_rescue=replace(conf.line_rescue, weak_inliers=args.line_rescue))
     if args.rescue_solver:
         conf = replace(conf, line_rescue=replace(conf.line_rescue, solver=args.rescue_solver))
+    if args.no_vanishing_points:
+        hyp = replace(conf.line_rescue.hypotheses, upright=False)
+        conf = replace(conf, line_rescue=replace(conf.line_rescue, hypotheses=hyp))
     return conf
 
 
@@ -306,6 +309,9 @@ def _add_eval_parser(sub):
     p.add_argument("--rescue-solver", default=None, choices=["ransac", "refine"],
                    help="how the rescue estimates a pose from each start: PnPL RANSAC (default), or a robust refinement "
                         "in narrowing gates, about half the time and less accurate (README, Localization)")
+    p.add_argument("--no-vanishing-points", action="store_true",
+                   help="the rescue starts from P3P poses only, without the two-point poses aligned by vanishing points "
+                        "(for scenes whose lines do not run along a few dominant directions; README, Localization)")
     p.add_argument("--points", default="sift-n4096", choices=list(point_confs), help="built-in point preset")
     p.add_argument("--synth-preset", default="small", choices=list(SYNTH_PRESETS))
     p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",

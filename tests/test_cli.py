@@ -100,3 +100,4 @@ def test_eval_options_set_the_rescue():
     assert conf("--rescue-solver", "refine").line_rescue.solver == "refine"
     assert conf("--line-rescue", "0", "--line-query", "raycast").line_rescue.weak_inliers == 0
     assert conf("--line-query", "raycast").line_query.method == "raycast"
+    assert conf().line_rescue.hypotheses.upright and not conf("--no-vanishing-points").line_rescue.hypotheses.upright
