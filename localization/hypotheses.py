@@ -144,11 +144,11 @@ def vanishing_points(lines2d: np.ndarray, camera, conf: HypothesisConfig, seed: 
         :math:`(V, 3)` (V <= vp_count), sign arbitrary.
     """
     L = np.asarray(lines2d, dtype=float).reshape(-1, 4)
-    w = np.linalg.norm(L[:, 2:] - L[:, :2], axis=1)
+    w = geo.segment_lengths(L)
     L, w = L[w >= conf.vp_min_length_px], w[w >= conf.vp_min_length_px]
     if len(L) < 2:
         return np.zeros((0, 3))
-    n = np.cross(geo.unproject_points(L[:, :2], 1.0, camera), geo.unproject_points(L[:, 2:], 1.0, camera))
+    n = geo.backprojected_planes(L, geo.projection_matrices(np.eye(4), camera))[:, :3]  # interpretation planes
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     tol = np.sin(np.radians(conf.vp_tol_deg))
     rng = np.random.default_rng(seed)

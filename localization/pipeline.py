@@ -29,6 +29,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lipmap import InputError, logger
+from lipmap import geometry as geo
 from lipmap.artifacts import Stamp, digest, scene_key, source_digest, variant_dir, views_key
 from lipmap.imageio import write_text_atomic
 from lipmap.poses import pose_errors
@@ -306,8 +307,7 @@ def longest_lines(lines2d: np.ndarray, k: int) -> np.ndarray:
     lines2d = np.asarray(lines2d, dtype=float).reshape(-1, 4)
     if k <= 0 or len(lines2d) <= k:
         return lines2d
-    length = np.linalg.norm(lines2d[:, 2:] - lines2d[:, :2], axis=1)
-    return lines2d[np.sort(np.argsort(-length, kind="stable")[:k])]
+    return lines2d[np.sort(np.argsort(-geo.segment_lengths(lines2d), kind="stable")[:k])]
 
 
 def _rescue_query(conf: LocalizationConfig, gate) -> LineQueryConfig:
