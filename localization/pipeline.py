@@ -222,7 +222,8 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
         priors = line_priors(name, est, points, rescue.prior_views)
         if rescue.hypotheses.keep > 0:
             hc = rescue.hypotheses
-            dirs = lq.dominant_directions(hc.n_map_lines, hc.min_support, hc.map_directions, hc.direction_tol_deg)
+            dirs = (lq.dominant_directions(hc.n_map_lines, hc.min_support, hc.map_directions, hc.direction_tol_deg)
+                    if hc.upright else None)
             priors += line_verified_poses(pm.p2d, pm.p3d, lines2d, lq.scoring_lines(hc.n_map_lines, hc.min_support),
                                           camera, hc, seed=conf.seed, directions=dirs)
         r = rescue_pose(pm, lines2d, priors, lq, camera, conf)
