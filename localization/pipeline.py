@@ -191,12 +191,14 @@ class HlocPoints:
 # ----------------------------------------------------------------------------------------------
 # per-query localization
 # ----------------------------------------------------------------------------------------------
-def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: LocalizationConfig, cam_from_world_gt=None) -> dict:
+def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: LocalizationConfig, cam_from_world_gt=None,
+                   trace: Optional[list] = None) -> dict:
     """Point-only and point+line poses of one query. Never raises: failures are recorded.
 
     With the ground-truth pose, the line matches of the last refinement (and its PnPL line inliers) are
     checked against it (:func:`~localization.linequery.correct_line_matches`) - after the timing, so the
-    check costs the method nothing.
+    check costs the method nothing. ``trace`` (a list) receives the line rescue's starts and their outcomes
+    (:func:`rescue_pose`), and the point matches as ``{"point_matches": pm}``.
     """
     rec = {"name": name, "point": {"success": False}, "point+line": {"success": False}}
     t0 = time.perf_counter()
@@ -207,6 +209,8 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
         return rec
     idx = subsample_matches(len(pm), conf.max_point_matches, conf.seed if conf.match_seed is None else conf.match_seed, name)
     pm = pm.subset(idx)
+    if trace is not None:
+        trace.append({"point_matches": pm})
     est = estimate_pose_points(pm.p2d, pm.p3d, camera, replace(conf.point_pose, seed=conf.seed))
     t_point = (time.perf_counter() - t0) * 1000
     rec["point"] = {"success": bool(est["success"]), "n_matches": len(pm), "n_inliers": int(est["n_inliers"]),
@@ -226,7 +230,7 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
                     if hc.upright else None)
             priors += line_verified_poses(pm.p2d, pm.p3d, lines2d, lq.scoring_lines(hc.n_map_lines, hc.min_support),
                                           camera, hc, seed=conf.seed, directions=dirs)
-        r = rescue_pose(pm, lines2d, priors, lq, camera, conf)
+        r = rescue_pose(pm, lines2d, priors, lq, camera, conf, trace)
         if r is not None:
             T, rescued = r["cam_from_world"], True
             plconf = replace(plconf, max_reproj_error=rescue.max_point_error)
@@ -274,17 +278,20 @@ def line_priors(name: str, est: dict, points, k: int) -> list:
     return priors
 
 
-def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: LocalizationConfig) -> Optional[dict]:
+def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: LocalizationConfig,
+                trace: Optional[list] = None) -> Optional[dict]:
     """The best PnPL pose over ``priors`` with wide-gate line candidates (:class:`LineRescueConfig`), or None.
 
     The refinement solver finds the map lines a start sees (the plane occlusion test) once per start: its narrower
     stages move the pose by centimetres. RANSAC's pose may lie far from its start, and is tested anew.
+    ``trace`` (a list) receives one dict per start and stage: ``stage``, ``start`` and ``result`` (the solver's
+    dict), ``kept`` (whether it passed ``min_line_inliers``) and ``score``.
     """
     rc = conf.line_rescue
     priors = distinct_poses(priors, rc.same_pose_m, rc.same_pose_deg)
     lines2d = longest_lines(lines2d, rc.max_query_lines)
     if rc.solver == "refine":
-        return _rescue_by_refinement(pm, lines2d, priors, lq, camera, conf)
+        return _rescue_by_refinement(pm, lines2d, priors, lq, camera, conf, trace)
     if rc.solver != "ransac":
         raise ValueError(f"unknown line rescue solver {rc.solver!r} (ransac, refine)")
     plconf = replace(conf.point_line_pose, seed=conf.seed, max_iterations=rc.max_iterations, max_reproj_error=rc.max_point_error,
@@ -295,9 +302,12 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
         for T0 in (priors if stage == 0 else [best["cam_from_world"]] if best is not None else []):
             m = lq.match(lines2d, T0, camera, qconf)
             r = estimate_pose_point_line(pm.p2d, pm.p3d, m["lines2d"], m["lines3d"], camera, conf=plconf)
-            if not r["success"] or r["n_line_inliers"] < rc.min_line_inliers:
+            kept = r["success"] and r["n_line_inliers"] >= rc.min_line_inliers
+            score = r["n_inliers"] + r["n_line_inliers"] if kept else -1
+            if trace is not None:
+                trace.append({"stage": stage, "start": T0, "result": r, "kept": kept, "score": score})
+            if not kept:
                 continue
-            score = r["n_inliers"] + r["n_line_inliers"]
             if score > best_score or stage > 0:  # a later stage refines the best pose with narrower gates
                 best, best_score = r, score
     return best
@@ -320,11 +330,13 @@ def _rescue_query(conf: LocalizationConfig, gate) -> LineQueryConfig:
                    min_length_px=max(rc.min_length_px, conf.line_query.min_length_px))
 
 
-def _rescue_by_refinement(pm, lines2d, priors: list, lq: LineQuery, camera, conf: LocalizationConfig) -> Optional[dict]:
+def _rescue_by_refinement(pm, lines2d, priors: list, lq: LineQuery, camera, conf: LocalizationConfig,
+                          trace: Optional[list] = None) -> Optional[dict]:
     """``rescue_pose`` with ``solver="refine"``: every start through every stage, each a robust refinement."""
     rc = conf.line_rescue
     best, best_score = None, -1
     for T in priors:
+        T0 = T
         vis, r = lq.visible_lines(T, camera, conf.line_query.occlusion_tol), None
         for gate in rc.refine_gates:
             m = lq.match(lines2d, T, camera, _rescue_query(conf, gate), vis)
@@ -337,9 +349,12 @@ def _rescue_by_refinement(pm, lines2d, priors: list, lq: LineQuery, camera, conf
             if not r["success"]:
                 break
             T = r["cam_from_world"]
-        if r is None or not r["success"] or r["n_line_inliers"] < rc.min_line_inliers:
+        kept = r is not None and r["success"] and r["n_line_inliers"] >= rc.min_line_inliers
+        score = r["n_inliers"] + r["n_line_inliers"] if kept else -1
+        if trace is not None:
+            trace.append({"stage": 0, "start": T0, "result": r, "kept": kept, "score": score})
+        if not kept:
             continue
-        score = r["n_inliers"] + r["n_line_inliers"]
         if score > best_score:
             best, best_score = r, score
     return best

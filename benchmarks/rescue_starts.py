@@ -1,0 +1,129 @@
+"""Where the line rescue of weak queries loses them: the point matches, the starts, RANSAC, or the choice.
+
+    python benchmarks/rescue_starts.py --dataset 7scenes --root DATA/heldout --scene redkitchen-heldout --out OUT \
+        --pose-source sfm --matches 10 [--method lipmap|lift] [--match-seeds 0,1,2,3,4] [--config JSON --tag TAG]
+
+The inputs come from a ``lipmap-loc eval`` run into OUT (built there when missing), as in
+``benchmarks/localization_variants.py``. Every query of every draw is localized with the defaults (or ``--config``)
+and its line rescue traced (``localize_query(trace=...)``). For the queries that go through the rescue, checked
+against the ground-truth pose, each row gives the share with:
+
+* at least 3 / 2 right point matches (within the rescue's point threshold at the ground truth): what P3P and the
+  two-point hypotheses need;
+* a start within 5 / 15 cm (the point-only pose and the hypotheses, after ``distinct_poses``);
+* some start whose first-stage PnPL pose lies within 5 cm (the best the choice among starts could do);
+* the chosen (highest-scoring) first-stage pose within 5 cm, and the final point+line pose within 5 cm;
+
+and the starts per query. Written to ``benchmarks/results/rescue-starts-<scene>-<method>-<N>[-<tag>].json``.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from argparse import Namespace
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+import results  # noqa: E402
+
+HEADER = ["scene", "line map", "point matches", "weak queries", "≥3 / ≥2 right point matches", "a start within 5 / 15 cm",
+          "some start's PnPL within 5 cm", "chosen PnPL within 5 cm", "final within 5 cm", "starts per query"]
+
+
+def query_outcome(rec: dict, trace: list, T_gt: np.ndarray, camera, point_px: float) -> dict | None:
+    """What one query's traced rescue reached, against its ground-truth pose (None: no rescue ran)."""
+    from lipmap import geometry as geo
+    from lipmap.poses import pose_errors
+
+    stage0 = [t for t in trace if t.get("stage") == 0]
+    if not stage0:
+        return None
+    pm = next(t["point_matches"] for t in trace if "point_matches" in t)
+    uv, z = geo.project_points(pm.p3d, T_gt, camera)
+    right = int(np.sum((z > 0) & (np.linalg.norm(uv - pm.p2d, axis=1) <= point_px)))
+
+    def err(T):
+        return pose_errors(T_gt, np.asarray(T))[0] if T is not None else np.inf
+
+    starts = [err(t["start"]) for t in stage0]
+    pnpl = [err(t["result"]["cam_from_world"]) if t["kept"] else np.inf for t in stage0]
+    scores = [t["score"] for t in stage0]
+    chosen = pnpl[int(np.argmax(scores))] if max(scores) >= 0 else np.inf
+    final = rec["point+line"].get("cam_from_world")
+    return {"right_points": right, "start_m": min(starts), "best_pnpl_m": min(pnpl), "chosen_pnpl_m": chosen,
+            "final_m": err(final), "starts": len(stage0)}
+
+
+def summarize(outcomes: list) -> dict:
+    """Shares (%) over the traced queries, as in the table's columns."""
+    o = [x for x in outcomes if x is not None]
+    if not o:
+        return {"weak_queries": 0}
+    col = {k: np.array([x[k] for x in o], dtype=float) for k in o[0]}
+    pct = lambda m: float(100 * np.mean(m))  # noqa: E731
+    return {"weak_queries": len(o), "right_points_ge3": pct(col["right_points"] >= 3),
+            "right_points_ge2": pct(col["right_points"] >= 2), "start_5cm": pct(col["start_m"] <= 0.05),
+            "start_15cm": pct(col["start_m"] <= 0.15), "best_pnpl_5cm": pct(col["best_pnpl_m"] <= 0.05),
+            "chosen_pnpl_5cm": pct(col["chosen_pnpl_m"] <= 0.05), "final_5cm": pct(col["final_m"] <= 0.05),
+            "starts_per_query": float(np.mean(col["starts"]))}
+
+
+def row(scene: str, method: str, matches, s: dict) -> list:
+    if not s["weak_queries"]:
+        return [scene, method, str(matches), "0", "", "", "", "", "", ""]
+    return [scene, method, str(matches), str(s["weak_queries"]), f"{s['right_points_ge3']:.0f} / {s['right_points_ge2']:.0f} %",
+            f"{s['start_5cm']:.0f} / {s['start_15cm']:.0f} %", f"{s['best_pnpl_5cm']:.0f} %", f"{s['chosen_pnpl_5cm']:.0f} %",
+            f"{s['final_5cm']:.0f} %", f"{s['starts_per_query']:.1f}"]
+
+
+def trace_scene(scene, points, lq, lines, conf, seeds) -> list:
+    """:func:`query_outcome` of every query of every draw."""
+    from localization.pipeline import localize_query
+
+    out = []
+    for seed in seeds:
+        c = replace(conf, match_seed=seed)
+        for v in scene.query:
+            trace = []
+            rec = localize_query(v.name, v.camera, points, lines[v.name], lq, c, trace=trace)
+            out.append(query_outcome(rec, trace, v.cam_from_world, v.camera, c.line_rescue.max_point_error))
+    return out
+
+
+def main(argv=None):
+    from lipmap.datasets import load_scene
+    from localization.cli import _mapping_conf
+    from localization.pipeline import LocalizationConfig
+    from localization_variants import eval_inputs, variant_config
+
+    ap = results.scene_parser(__doc__)
+    ap.add_argument("--method", default=LocalizationConfig().map_method)
+    ap.add_argument("--pose-source", default="posetxt")
+    ap.add_argument("--matches", type=int, default=10, help="point matches per query")
+    ap.add_argument("--match-seeds", default="0,1,2,3,4")
+    ap.add_argument("--config", default="{}", metavar="JSON", help="overrides of LocalizationConfig (as a variant)")
+    ap.add_argument("--tag", default="")
+    args = ap.parse_args(argv)
+
+    scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source)
+    base = LocalizationConfig(max_point_matches=args.matches or None, map_method=args.method,
+                              mapping=_mapping_conf(Namespace(preset=LocalizationConfig().mapping, keyframes=None)))
+    points, _, lq, lines = eval_inputs(scene, args.out / args.dataset / args.scene, base)
+    over = json.loads(args.config)
+    seeds = [int(s) for s in args.match_seeds.split(",")]
+    s = summarize(trace_scene(scene, points, lq, lines, variant_config(base, over), seeds))
+    r = row(args.scene, args.method, args.matches, s)
+    print("| " + " | ".join(HEADER) + " |\n| " + " | ".join(r) + " |")
+    results.write(f"rescue-starts-{args.scene}-{args.method}-{args.matches}" + (f"-{args.tag}" if args.tag else ""),
+                  {"scene": args.scene, "dataset": args.dataset, "method": args.method, "pose_source": args.pose_source,
+                   "matches": args.matches, "match_seeds": seeds, "overrides": over, "summary": s,
+                   "table": {"header": HEADER, "rows": [r]}})
+
+
+if __name__ == "__main__":
+    main()
