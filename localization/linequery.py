@@ -38,6 +38,10 @@ class LineQueryConfig:
     min_support: int = 1  # map lines seen in fewer mapping images are not queried (1: all)
     one_to_one: bool = True  # a map line matches at most one query line (its best), as a point matches one keypoint
     min_margin: float = 6.0  # projection: drop a query line whose runner-up map line scores within this of its best (0: off)
+    # projection: a runner-up within this (m, both endpoints to the best's 3D line, and 5 deg) is the same physical
+    # line mapped twice (neighbouring patch edges, an edge and an on-plane line), so it does not make the match
+    # ambiguous (0: every runner-up counts)
+    margin_dup_3d: float = 0.0
     # projection: keep each query line's k best map lines (k > 1 turns the margin off: RANSAC picks among them)
     max_candidates: int = 1
 
@@ -194,10 +198,13 @@ class LineQuery:
             return qi[keep], vis[pj[keep]]
         if conf.min_margin > 0 and len(qi):
             # a runner-up about as good as the best makes the query line ambiguous (parallel edges a few px apart)
-            nxt = np.r_[score[1:], np.inf]
-            has_next = np.r_[qi[1:] == qi[:-1], False]
-            ok = ~has_next | (nxt - score >= conf.min_margin)
-            first &= ok
+            starts = np.flatnonzero(first)
+            rival = np.where(first, np.inf, score)
+            if conf.margin_dup_3d > 0 and not first.all():
+                best = np.repeat(starts, np.diff(np.r_[starts, len(qi)]))
+                rival[~first & _same_line_3d(self.lines[vis[pj]], self.lines[vis[pj[best]]], conf.margin_dup_3d)] = np.inf
+            ok = np.minimum.reduceat(rival, starts) - score[starts] >= conf.min_margin
+            first[starts[~ok]] = False
         return qi[first], vis[pj[first]]
 
     def _verify(self, lines2d, cand_q, cand_l, T, camera, conf):
@@ -224,6 +231,15 @@ class LineQuery:
             "angle": ang[ok],
             "dist": dist[ok],
         }
+
+
+def _same_line_3d(a: np.ndarray, b: np.ndarray, tol: float, max_angle_deg: float = 5.0) -> np.ndarray:
+    """Whether 3D segments a (M, 2, 3) lie on b's lines (M, 2, 3): both endpoints within ``tol`` of b's infinite
+    line and the directions within ``max_angle_deg``."""
+    da, db = a[:, 1] - a[:, 0], b[:, 1] - b[:, 0]
+    cos = np.abs((da * db).sum(1)) / np.maximum(np.linalg.norm(da, axis=1) * np.linalg.norm(db, axis=1), 1e-12)
+    near = geo.point_line_distance(a, b[:, None]).max(1) <= tol
+    return near & (cos >= np.cos(np.radians(max_angle_deg)))
 
 
 def correct_line_matches(lines2d: np.ndarray, lines3d: np.ndarray, cam_from_world_gt: np.ndarray, camera,

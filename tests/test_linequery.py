@@ -103,6 +103,24 @@ def test_min_margin_drops_query_lines_with_an_equally_good_runner_up():
     assert alone.match(q, T, SMALL_CAMERA, LineQueryConfig(method="projection", max_dist_px=4, min_margin=6.0))["line_idx"].tolist() == [0]
 
 
+def test_margin_ignores_a_runner_up_that_is_the_same_line_in_3d():
+    """``margin_dup_3d``: a twin a few mm beside the best line in 3D is the same line mapped twice and does not make
+    the query line ambiguous; a line that projects as close but lies 20 % deeper along the rays still does."""
+    corners, views, lines, edge_line = _map()
+    T = views[1].cam_from_world
+    q = _query_lines(lines[:1], T)
+    shift = 0.004 * np.cross(lines[0, 1] - lines[0, 0], T[2, :3])
+    shift /= max(np.linalg.norm(shift), 1e-12) / 0.004
+    C = -T[:3, :3].T @ T[:3, 3]
+    deeper = C + 1.2 * (lines[:1] - C) + shift  # projects like the twin, ~20 % of the depth away in 3D
+    conf = LineQueryConfig(method="projection", max_dist_px=4, min_margin=6.0, margin_dup_3d=0.03)
+    twin = LineQuery(np.concatenate([lines, lines[:1] + shift]), corners, edge_line)
+    assert twin.match(q, T, SMALL_CAMERA, conf)["line_idx"].tolist() == [0]
+    far = LineQuery(np.concatenate([lines, deeper]), corners=None)
+    assert len(far.match(q, T, SMALL_CAMERA, LineQueryConfig(method="projection", max_dist_px=4, min_margin=0.0))["query_idx"]) == 1
+    assert len(far.match(q, T, SMALL_CAMERA, conf)["query_idx"]) == 0
+
+
 def test_projection_candidates_equal_a_float64_reference():
     """The float32 screening of the projection query keeps exactly the pairs of a plain float64 test of every
     (query line, map line) pair: angle, both query endpoints' distance to the projected line, overlap."""
