@@ -98,7 +98,7 @@ def test_min_margin_drops_query_lines_with_an_equally_good_runner_up():
     conf = LineQueryConfig(method="projection", max_dist_px=4, min_margin=0.0)
     lq = LineQuery(twin, corners, edge_line)
     assert lq.match(q, T, SMALL_CAMERA, conf)["query_idx"].tolist() == [0]  # the nearer twin wins
-    assert len(lq.match(q, T, SMALL_CAMERA, LineQueryConfig(method="projection", max_dist_px=4, min_margin=6.0))["query_idx"]) == 0
+    assert len(lq.match(q, T, SMALL_CAMERA, LineQueryConfig(method="projection", max_dist_px=4, min_margin=6.0, margin_dup_3d=0.0))["query_idx"]) == 0
     alone = LineQuery(lines, corners, edge_line)  # without the twin, the runner-up (if any) is far: kept
     assert alone.match(q, T, SMALL_CAMERA, LineQueryConfig(method="projection", max_dist_px=4, min_margin=6.0))["line_idx"].tolist() == [0]
 
