@@ -40,7 +40,7 @@ class LineQueryConfig:
     min_margin: float = 6.0  # projection: drop a query line whose runner-up map line scores within this of its best (0: off)
     # projection: a runner-up within this (m, both endpoints to the best's 3D line, and 5 deg) is the same physical
     # line mapped twice (neighbouring patch edges, an edge and an on-plane line), so it does not make the match
-    # ambiguous (0: every runner-up counts). Held-out split, 5 matches, 10 draws: 14.7 cm against 30.5 (README)
+    # ambiguous (0: every runner-up counts; README, `-dup` variants)
     margin_dup_3d: float = 0.03
     # projection: keep each query line's k best map lines (k > 1 turns the margin off: RANSAC picks among them)
     max_candidates: int = 1
@@ -201,7 +201,7 @@ class LineQuery:
             starts = np.flatnonzero(first)
             rival = np.where(first, np.inf, score)
             if conf.margin_dup_3d > 0 and not first.all():
-                best = np.repeat(starts, np.diff(np.r_[starts, len(qi)]))
+                best = np.searchsorted(qi, qi)  # each candidate's query line's best (qi is sorted)
                 rival[~first & _same_line_3d(self.lines[vis[pj]], self.lines[vis[pj[best]]], conf.margin_dup_3d)] = np.inf
             ok = np.minimum.reduceat(rival, starts) - score[starts] >= conf.min_margin
             first[starts[~ok]] = False
