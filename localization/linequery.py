@@ -157,9 +157,10 @@ class LineQuery:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         proj, _ = geo.project_segments(self.lines[vis], T, camera)
         qs = geo.as_segments2d(q)
-        # Cheap tests first, over all pairs as float32 matrix products (a query has ~300 lines, a view ~2000 map
-        # lines): the angle (unit directions) and the distance of both query endpoints to the projected infinite
-        # line (its unit normal); only the few pairs left get the overlap and their float64 distances.
+        # Two cheap tests over all pairs (a query has ~300 lines, a view ~1,000-3,000 map lines), as float32 matrix
+        # products: the angle, and the query line's midpoint within the gate of the projected infinite line (its unit
+        # normal), which both endpoints being within it implies. About 1 % of the pairs are left; they get the exact
+        # tests in float64. (A test per endpoint instead of the midpoint's costs a third more, for the same pairs.)
         dq = qs[:, 1] - qs[:, 0]
         dp = proj[:, 1] - proj[:, 0]
         dq = dq / np.maximum(np.linalg.norm(dq, axis=1, keepdims=True), 1e-9)
@@ -169,12 +170,11 @@ class LineQuery:
         off = (nrm * proj[:, 0]).sum(1)
         cos_gate = np.cos(np.radians(conf.max_angle_deg))
         with np.errstate(invalid="ignore"):  # NaN projections (behind the camera) pass no test
-            # float32 screens with gates a hair wider; the survivors are tested again in float64 below
-            nrm32, off32, gate32 = nrm.T.astype(np.float32), off.astype(np.float32), np.float32(conf.max_dist_px + 1e-3)
-            m = np.abs(dq.astype(np.float32) @ dp.T.astype(np.float32)) >= np.float32(cos_gate - 1e-5)
-            m &= np.abs(qs[:, 0].astype(np.float32) @ nrm32 - off32) <= gate32
-            m &= np.abs(qs[:, 1].astype(np.float32) @ nrm32 - off32) <= gate32
-        qi, pj = np.nonzero(m)
+            # gates a hair wider than the float64 ones below, which decide
+            mid32 = (0.5 * (qs[:, 0] + qs[:, 1])).astype(np.float32)
+            m = np.abs(mid32 @ nrm.T.astype(np.float32) - off.astype(np.float32)) <= np.float32(conf.max_dist_px + 1e-3)
+            m &= np.abs(dq.astype(np.float32) @ dp.T.astype(np.float32)) >= np.float32(cos_gate - 1e-5)
+        qi, pj = np.divmod(np.flatnonzero(m), m.shape[1])  # np.nonzero's (qi, pj) order, 10x faster on (Q, P)
         cos = np.abs((dq[qi] * dp[pj]).sum(1))
         d0 = np.abs((qs[qi, 0] * nrm[pj]).sum(1) - off[pj])
         d1 = np.abs((qs[qi, 1] * nrm[pj]).sum(1) - off[pj])

@@ -122,8 +122,9 @@ def test_margin_ignores_a_runner_up_that_is_the_same_line_in_3d():
 
 
 def test_projection_candidates_equal_a_float64_reference():
-    """The float32 screening of the projection query keeps exactly the pairs of a plain float64 test of every
-    (query line, map line) pair: angle, both query endpoints' distance to the projected line, overlap."""
+    """The float32 screening of the projection query (angle, and the query line's midpoint near the projected line)
+    keeps exactly the pairs of a plain float64 test of every (query line, map line) pair: angle, both query
+    endpoints' distance to the projected line, overlap."""
     rng = np.random.default_rng(0)
     cam = SMALL_CAMERA
     T = make_T(np.eye(3), np.zeros(3))
@@ -145,4 +146,8 @@ def test_projection_candidates_equal_a_float64_reference():
         ov = geo.overlap_ratio(proj[None], qs)
     ok = (ang <= np.radians(3)) & (dist <= 8) & (ov >= 0.3)
     ref = set(zip(*np.nonzero(ok)))
+    # pairs whose midpoint passes the screen but one endpoint lies outside the gate: the exact test must drop them
+    with np.errstate(invalid="ignore"):
+        mid = geo.perpendicular_distance(np.repeat(qs.mean(-2, keepdims=True), 2, -2), proj[None], "max")
+    assert ((ang <= np.radians(3)) & (mid <= 8) & (dist > 8) & (ov >= 0.3)).sum() > 0
     assert len(ref) > 50 and got == {(int(i), int(j)) for i, j in ref}
