@@ -202,7 +202,9 @@ class LineQuery:
             rival = np.where(first, np.inf, score)
             if conf.margin_dup_3d > 0 and not first.all():
                 best = np.searchsorted(qi, qi)  # each candidate's query line's best (qi is sorted)
-                rival[~first & _same_line_3d(self.lines[vis[pj]], self.lines[vis[pj[best]]], conf.margin_dup_3d)] = np.inf
+                # only a runner-up within the margin can make its line ambiguous: the 3D test is for those alone
+                c = np.flatnonzero(~first & (score - score[best] < conf.min_margin))
+                rival[c[_same_line_3d(self.lines[vis[pj[c]]], self.lines[vis[pj[best[c]]]], conf.margin_dup_3d)]] = np.inf
             ok = np.minimum.reduceat(rival, starts) - score[starts] >= conf.min_margin
             first[starts[~ok]] = False
         return qi[first], vis[pj[first]]
