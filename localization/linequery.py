@@ -159,8 +159,8 @@ class LineQuery:
         qs = geo.as_segments2d(q)
         # Two cheap tests over all pairs (a query has ~300 lines, a view ~1,000-3,000 map lines), as float32 matrix
         # products: the angle, and the query line's midpoint within the gate of the projected infinite line (its unit
-        # normal), which both endpoints being within it implies. About 1 % of the pairs are left; they get the exact
-        # tests in float64. (A test per endpoint instead of the midpoint's costs a third more, for the same pairs.)
+        # normal), which both endpoints being within it implies (one product instead of one per endpoint). About 1 %
+        # of the pairs are left; they get the exact tests in float64.
         dq = qs[:, 1] - qs[:, 0]
         dp = proj[:, 1] - proj[:, 0]
         dq = dq / np.maximum(np.linalg.norm(dq, axis=1, keepdims=True), 1e-9)
