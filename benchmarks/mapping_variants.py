@@ -4,8 +4,8 @@
         --scene redkitchen --out OUT [--preset fast] [--base NAME] [--tag TAG] NAME='{"line_weight": 1.0}' NAME2='{...}' ...
 
 Each variant is mapped into OUT/<NAME> (reused when a map made with the same settings is there). A variant that
-changes only extraction-side settings (``extract``, ``plane_depth_tol``, ``on_plane_lines``, ``lift``) starts
-from the planes of ``--base`` (copied: their stamp says they are the same planes), so it costs seconds, not a
+differs from ``--base`` only in extraction-side settings (``extract``, ``plane_depth_tol``, ``on_plane_lines``,
+``lift``, ``refine``) starts from the planes of ``--base`` (copied: their stamp says they are the same planes), so it costs seconds, not a
 plane optimization. Prints a table (full map and plane edges alone: F@5cm, R@50mm, images per line;
 plane count and depth error) and writes it to ``benchmarks/results/mapping-variants-<dataset>-<scene>.json``.
 """
@@ -59,11 +59,17 @@ def main(argv=None):
     scene = load_scene(args.dataset, args.root, args.scene)
     gt = load_ground_truth(scene_ground_truth(scene))
     rows, data = [], {}
-    for spec in args.variants:
-        name, _, text = spec.partition("=")
-        over = json.loads(text or "{}")
+    specs = [(spec.partition("=")[0], json.loads(spec.partition("=")[2] or "{}")) for spec in args.variants]
+    base_over = dict(specs).get(args.base, {})
+
+    def plane_side(over):
+        return {k: v for k, v in over.items() if k not in EXTRACTION_ONLY}
+
+    for name, over in specs:
         out = args.out / name
-        if args.base and over and set(over) <= EXTRACTION_ONLY and not (out / "planes.h5").exists():
+        # same planes as the base: the overrides differ from the base's only in extraction-side settings
+        reuses = bool(args.base) and name != args.base and plane_side(over) == plane_side(base_over)
+        if reuses and not (out / "planes.h5").exists():
             out.mkdir(parents=True, exist_ok=True)
             for f in ("planes.h5", "lines2d.h5"):
                 shutil.copy(args.out / args.base / f, out / f)
@@ -78,7 +84,7 @@ def main(argv=None):
                      f"{full['median_images']:.0f} / {full['mean_images']:.1f} ({edges['median_images']:.0f} / "
                      f"{edges['mean_images']:.1f})", ps.get("n_planes", ""),
                      f"{ps.get('depth_error_median_cm', float('nan')):.1f} cm / {100 * ps.get('depth_error_over_5cm', float('nan')):.0f} %",
-                     "" if t is None or (args.base and set(over) <= EXTRACTION_ONLY and over) else f"{t:.0f} s planes"])
+                     "" if t is None or reuses else f"{t:.0f} s planes"])
         print("| " + " | ".join(map(str, rows[-1])) + " |", flush=True)
     results.write(f"mapping-variants-{scene.dataset}-{scene.name}" + (f"-{args.tag}" if args.tag else ""), {"preset": args.preset, "variants": data,
                                                                       "table": {"header": HEADER, "rows": rows}})

@@ -80,7 +80,7 @@ def test_a_fixed_iteration_budget_is_sampled_over_the_views_in_epochs(synthetic_
     init = init_planes(views, PlaneInitConfig(n_planes=200, voxel_size=0.05))
     seen = []
 
-    def count(view, planes, it, render):
+    def count(view, planes, it, render, target):
         seen.append((it, view.name))
         return None
 

@@ -56,8 +56,9 @@ class TestOptimize:
     def test_extra_loss_hook_and_restructure_callback(self):
         calls, maps = [], []
 
-        def extra(view, planes, iteration, render):
-            calls.append((iteration, render is not None, planes.center.requires_grad))
+        def extra(view, planes, iteration, render, target):
+            calls.append((iteration, render is not None and tuple(target.depth.shape) == tuple(render.alpha.shape),
+                          planes.center.requires_grad))
             return 0.0 * planes.center.sum()
 
         optimize_planes(wall_targets(2), noisy_wall_planes(), small_conf(epochs=2), extra_loss=extra, on_restructure=maps.append)
@@ -65,7 +66,7 @@ class TestOptimize:
         assert all(c[1] and c[2] for c in calls)
         assert len(maps) == 3 and all(isinstance(m, PlaneIndexMap) for m in maps)
 
-        def extra3(view, planes, iteration):  # one fixed signature: a callback without ``render`` is refused
+        def extra3(view, planes, iteration, render):  # one fixed signature: a callback without ``target`` is refused
             return planes.radii.sum() * 0
 
         with pytest.raises(TypeError):

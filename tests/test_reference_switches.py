@@ -83,4 +83,5 @@ def test_paper_preset_follows_the_reference_code():
     assert (Schedule.of(planes, 100).max_iters, Schedule.of(planes, 30).max_iters, Schedule.of(planes, 7000).max_iters) == (6000,) * 3
     assert conf.max_assign_frac == 0 and conf.euc_inside_only and conf.extract.dist_reduce == "mean"
     assert (conf.line_weight, conf.endpoint_weight, conf.robust_scale, conf.on_plane_lines) == (0.1, 0.5, 0.0, False)
+    assert conf.line_depth_gate == 0 and get_conf("fast").line_depth_gate > 0  # the gate is ours, not the reference's
     assert (conf.extract.max_dist, conf.extract.max_angle) == (1.0, 0.01)

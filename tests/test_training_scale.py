@@ -92,3 +92,43 @@ def test_plane_depth_and_render_at_a_downscale_agree_with_full_resolution():
     assert z.shape == (240, 320)
     ok = (z > 0) & (half > 0)
     assert np.median(np.abs(z[ok] - half[ok])) < 0.01
+
+
+def _line_term_on(corners_planes, corners_true, gate, pixels_per_line):
+    """The line term of view 0 (640x480 trained at 320x240) on planes ``corners_planes``, against the sensor
+    depth of the scene ``corners_true``: (assignments to the panel, plane 0; loss)."""
+    import torch
+
+    from lipmap.planes.render import rasterize_planes
+
+    _, views = _views_at(FULL)
+    v = views[0]
+    frames = [DepthFrame(v, v.camera, v.cam_from_world, raycast_depth(corners_true, v))]
+    conf = PlaneOptConfig.preset("fast", downscale=2, progress=False)
+    tgt = prepare_targets(frames, conf)[0]
+    planes = _planes(corners_planes)
+    out = rasterize_planes(planes.center, planes.quat, planes.radii, tgt.cam_from_world, tgt.camera.params,
+                           tgt.camera.width, tgt.camera.height, 1500.0)
+    sup = LineSupervision({v.name: detected(corners_true, v)}, weight=1.0, pixels_per_line=pixels_per_line,
+                          endpoint_weight=0.0, depth_gate=gate)
+    loss = sup(v, planes, 0, out, tgt)
+    return int((sup.last.get("planes", np.zeros(0)) == 0).sum()), float(loss)
+
+
+def test_the_depth_gate_of_the_line_term_skips_planes_off_the_sensor_depth():
+    """A panel plane 0.5 m in front of the real panel, scaled so that it projects onto the same pixels in view 0
+    (the camera sits at the origin): its edges fit the detected lines there, but the sensor depth says the
+    surface is 0.5 m behind it. The gate (0.1 m) drops those assignments; the plane on the surface keeps them.
+    Both ways of picking region pixels (every pixel through the render, or sampled and ray cast)."""
+    corners, _ = panel_scene()
+    floating = corners.copy()
+    floating[0] *= 1.5 / 2.0  # panel at z 2 m -> 1.5 m, same projection from the origin
+    floating[0, :, 0] += 0.005  # and 2 px off its lines, so that the line term pulls
+    for ppl in (0, 8):
+        n_on, loss_on = _line_term_on(corners, corners, 0.1, ppl)
+        n_on_off, _ = _line_term_on(corners, corners, 0.0, ppl)
+        n_fl_off, loss_fl_off = _line_term_on(floating, corners, 0.0, ppl)
+        n_fl, loss_fl = _line_term_on(floating, corners, 0.1, ppl)
+        assert n_on == n_on_off >= 4, (ppl, n_on, n_on_off)  # the gate keeps what lies on the surface
+        assert n_fl_off >= 4 and loss_fl_off > 0, (ppl, n_fl_off)  # without it the floating plane is pulled as the real one
+        assert n_fl == 0, (ppl, n_fl)

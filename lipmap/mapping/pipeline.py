@@ -41,6 +41,9 @@ class MappingConfig:
     robust_scale: float = 2.0  # px (full resolution), 0 = paper: an edge far from its line is usually another surface's
     max_assign_frac: float = 0.1  # skip assignments whose edge is > this x image size away (0: reference, none)
     euc_inside_only: bool = False  # D_euc only over endpoints inside the image (reference; moot without D_euc)
+    # m: the line term pulls a plane only where it lies this close to the sensor depth (0: the paper); without it
+    # the term holds planes floating in front of the surface, whose edges fit lines in a few views
+    line_depth_gate: float = 0.1
     on_plane_lines: bool = True  # lift the detections no plane edge explains onto the planes (ours, not the paper's)
     plane_depth_tol: float = 0.03  # m: on-plane lines take the input depth where the planes are farther from it (clutter)
     # 3 px / 0.03 rad: "fast" trains at half resolution, where the paper's 1 px is half a training pixel
@@ -62,7 +65,7 @@ confs = {
     # max D_ort, group loss off) rather than the text's sum with the group loss; extraction on the mean of
     # the endpoint distances; no assignment distance filter
     "paper": MappingConfig(preset="paper", planes="paper", line_weight=0.1, endpoint_weight=0.5, robust_scale=0.0,
-                           max_assign_frac=0.0, euc_inside_only=True, on_plane_lines=False,
+                           max_assign_frac=0.0, euc_inside_only=True, on_plane_lines=False, line_depth_gate=0.0,
                            extract=ExtractConfig(dist_reduce="mean")),
 }
 
@@ -130,7 +133,7 @@ def line_supervision(lines_by_view: dict, conf: MappingConfig):
     return LineSupervision(lines_by_view, weight=conf.line_weight, pixels_per_line=conf.pixels_per_line,
                            use_group=conf.group_loss, seed=conf.seed, endpoint_weight=conf.endpoint_weight,
                            robust_scale=conf.robust_scale, max_assign_frac=conf.max_assign_frac,
-                           euc_inside_only=conf.euc_inside_only)
+                           euc_inside_only=conf.euc_inside_only, depth_gate=conf.line_depth_gate)
 
 
 def fit_planes_with_lines(scene, lines_by_view: dict, out_dir: Path, conf: MappingConfig, lines_source=None,

@@ -15,7 +15,7 @@ from .losses import line_loss
 
 
 class LineSupervision:
-    """``extra_loss(view, planes, iteration, render) -> weight * line loss`` for :func:`optimize_planes`.
+    """``extra_loss(view, planes, iteration, render, target) -> weight * line loss`` for :func:`optimize_planes`.
 
     Args:
         lines_by_view: {view name: (N, 4) detected segments at the view's FULL resolution}.
@@ -35,7 +35,7 @@ class LineSupervision:
     def __init__(self, lines_by_view: dict, weight: float = 0.1, pixels_per_line: int = 1, use_group: bool = False,
                  group_weight: float = 10.0, seed: int = 0,
                  endpoint_weight: float = 0.5, robust_scale: float = 0.0, max_assign_frac: float = 0.1,
-                 euc_inside_only: bool = False):
+                 euc_inside_only: bool = False, depth_gate: float = 0.0):
         self.lines = {k: np.asarray(v, dtype=np.float64).reshape(-1, 4) for k, v in lines_by_view.items()}
         self.weight = weight
         self.pixels_per_line = max(0, pixels_per_line if not use_group else max(2, pixels_per_line))
@@ -46,6 +46,7 @@ class LineSupervision:
         self.robust_scale = robust_scale
         self.max_assign_frac = max_assign_frac
         self.euc_inside_only = euc_inside_only
+        self.depth_gate = depth_gate
         self._regions = LRU(self._make_regions, DEFAULT_CAPACITY)  # bounded: scenes have thousands of views
         self.last = {}
 
@@ -64,10 +65,11 @@ class LineSupervision:
         return {"weight": self.weight, "pixels_per_line": self.pixels_per_line, "use_group": self.use_group,
                 "group_weight": self.group_weight, "seed": self.seed, "endpoint_weight": self.endpoint_weight,
                 "robust_scale": self.robust_scale, "max_assign_frac": self.max_assign_frac,
-                "euc_inside_only": self.euc_inside_only}
+                "euc_inside_only": self.euc_inside_only, "depth_gate": self.depth_gate}
 
-    def __call__(self, view, planes, iteration: int, render=None):
-        """Line loss of ``view`` at the training resolution (that of ``render``; the view's own without one)."""
+    def __call__(self, view, planes, iteration: int, render=None, target=None):
+        """Line loss of ``view`` at the training resolution (that of ``render``; the view's own without one).
+        ``target`` (the view's :class:`~lipmap.planes.optimize.ViewTarget`) gives the sensor depth of the gate."""
         camera = view.camera
         if render is not None:
             h, w = render.hits.shape[:2]
@@ -85,8 +87,15 @@ class LineSupervision:
         if self.pixels_per_line == 0 and render is not None and tuple(render.hits.shape[:2]) == (camera.height, camera.width):
             # every region pixel, through the renderer's own first hits; each (line, plane) pair once
             k_all = render.hits[torch.as_tensor(pix[:, 1]), torch.as_tensor(pix[:, 0]), 0].cpu().numpy()
-            pairs = np.unique(np.stack([li, k_all], 1), axis=0)
-            pairs = pairs[pairs[:, 1] >= 0]
+            pairs, inv = np.unique(np.stack([li, k_all], 1), axis=0, return_inverse=True)
+            keep = pairs[:, 1] >= 0
+            ok_pix = self._depth_ok(pix, k_all, corners, view, camera, target)
+            if ok_pix is not None:  # a pair stays when one of its pixels agrees, or none has sensor depth
+                agree, known = np.zeros(len(pairs), bool), np.zeros(len(pairs), bool)
+                np.logical_or.at(agree, inv.ravel(), ok_pix == 1)
+                np.logical_or.at(known, inv.ravel(), ok_pix >= 0)
+                keep &= agree | ~known
+            pairs = pairs[keep]
             li = pairs[:, 0]
             k = torch.as_tensor(pairs[:, 1])
         else:
@@ -101,6 +110,9 @@ class LineSupervision:
             o, d = pixel_rays_world(pix, view.cam_from_world, camera)
             k, _ = first_hit_torch(corners, torch.as_tensor(o, dtype=corners.dtype, device=corners.device),
                                    torch.as_tensor(d, dtype=corners.dtype, device=corners.device))
+            ok_pix = self._depth_ok(pix, k.cpu().numpy(), corners, view, camera, target)
+            if ok_pix is not None:
+                k = torch.where(torch.as_tensor(ok_pix != 0, device=k.device), k, torch.full_like(k, -1))
         hit = (k >= 0).cpu().numpy()
         if not hit.any():
             return zero
@@ -117,7 +129,37 @@ class LineSupervision:
                          use_group=self.use_group, group_weight=self.group_weight,
                          endpoint_weight=self.endpoint_weight, robust_scale=self.robust_scale * s,
                          euc_inside_only=self.euc_inside_only)
-        self.last = {"n_assign": int(ok.sum()), "loss": float(loss.detach())}
+        self.last = {"n_assign": int(ok.sum()), "loss": float(loss.detach()), "planes": plane[ok]}
         # distances are in training-resolution pixels; express them in full-resolution pixels so the
         # balance with the plane loss does not change with the training scale
         return self.weight * loss / s
+
+    def _depth_ok(self, pix, plane, corners, view, camera, target):
+        """Per region pixel: 1 where the plane ``plane`` it meets first lies within ``depth_gate`` of the sensor
+        depth at one of the 3x3 pixels around it (an edge lies on a depth step, and a 1-pixel region straddles
+        it), 0 where it does not, -1 where there is no sensor depth there (or no plane); None when the gate is off."""
+        if not self.depth_gate > 0 or target is None:
+            return None
+        depth = target.depth.cpu().numpy()
+        H, W = depth.shape
+        if (H, W) != (camera.height, camera.width):
+            raise ValueError(f"{view.name}: the sensor depth is {(H, W)}, the training grid {(camera.height, camera.width)}")
+        out = np.full(len(pix), -1, dtype=np.int8)
+        m = plane >= 0
+        if not m.any():
+            return out
+        c = corners.detach()[torch.as_tensor(plane[m])].cpu().numpy().astype(np.float64)  # (M, 4, 3)
+        R, t = view.cam_from_world[:3, :3], view.cam_from_world[:3, 3]
+        c_cam = c @ R.T + t
+        n = np.cross(c_cam[:, 1] - c_cam[:, 0], c_cam[:, 3] - c_cam[:, 0])
+        col, row = pix[m, 0], pix[m, 1]
+        ray = np.stack([(col + 0.5 - camera.cx) / camera.fx, (row + 0.5 - camera.cy) / camera.fy, np.ones(len(col))], 1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = (n * c_cam[:, 0]).sum(1) / (n * ray).sum(1)  # ray at z = 1: the hit's parameter is its depth
+        best = np.full(len(z), np.inf)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                d = depth[np.clip(row + dy, 0, H - 1), np.clip(col + dx, 0, W - 1)]
+                best = np.where(d > 0, np.minimum(best, np.abs(z - d)), best)
+        out[m] = np.where(np.isfinite(best), best <= self.depth_gate, -1)
+        return out

@@ -7,7 +7,7 @@ no view) and splitting (mean |grad| of an axis's radii >= threshold). Reference-
 DESIGN.md; what is ours is said where it is done.
 
 Hook for the line loss: ``optimize_planes(..., extra_loss=f)`` adds ``f(view, planes, iteration,
-render)`` (a scalar tensor, already weighted) to the total, with that one fixed signature; see
+render, target)`` (a scalar tensor, already weighted) to the total, with that one fixed signature; see
 :func:`optimize_planes`. Pruning and
 splitting go through :func:`prune_and_split`, whose :class:`PlaneIndexMap` lets callers carry
 per-plane state across the change.
@@ -467,7 +467,7 @@ def _train_view(params, opt, tgt: ViewTarget, it: int, sched: Schedule, extra_lo
     out = rasterize_planes(params[0], params[1], params[2], tgt.cam_from_world, tgt.camera.params,
                            tgt.camera.width, tgt.camera.height, sched.lam(it), conf.max_hits, conf.tile_size)
     pl = plane_loss(out, tgt, conf)
-    extra = None if extra_loss is None else extra_loss(tgt.view, Planes(params[0], params[1], params[2]), it, out)
+    extra = None if extra_loss is None else extra_loss(tgt.view, Planes(params[0], params[1], params[2]), it, out, tgt)
     total = _total_loss(pl, extra, conf.plane_weight * sched.decay(it))
     vis = out.visible_planes(len(params[0]))
     stats.seen |= vis
@@ -529,7 +529,7 @@ def _clean_start(planes: Planes, dev, on_restructure) -> list:
     return [t.clone().requires_grad_(True) for t in planes.tensors()]
 
 
-ExtraLoss = Callable[[object, Planes, int, RenderOutput], Optional[torch.Tensor]]
+ExtraLoss = Callable[[object, Planes, int, RenderOutput, ViewTarget], Optional[torch.Tensor]]
 
 
 def optimize_planes(
@@ -546,10 +546,11 @@ def optimize_planes(
             list of :class:`~lipmap.scene.View` (read through a TargetStore here).
         planes: initial planes (degenerate ones are dropped first).
         conf: :class:`PlaneOptConfig` (default: the ``fast`` preset).
-        extra_loss: ``f(view, planes, iteration, render) -> scalar tensor or None``, added unweighted to
+        extra_loss: ``f(view, planes, iteration, render, target) -> scalar tensor or None``, added unweighted to
             ``plane_weight * decay * plane_loss``; ``planes`` are the live parameters (differentiable),
             ``render`` the :class:`RenderOutput` of this view at the working resolution
-            (``render.hits[..., 0]`` = the first plane each pixel's ray meets). The line term of the
+            (``render.hits[..., 0]`` = the first plane each pixel's ray meets), ``target`` its
+            :class:`ViewTarget` (sensor depth and normals on the same grid). The line term of the
             joint optimization is one (:class:`lipmap.mapping.supervision.LineSupervision`).
         on_restructure: ``g(index_map: PlaneIndexMap)`` called after every prune/split (and the
             initial clean-up) so per-plane state kept outside can follow.
