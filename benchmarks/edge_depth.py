@@ -25,7 +25,7 @@ from lipmap import geometry as geo
 from lipmap.datasets import load_scene
 from lipmap.frames import depth_maps
 from lipmap.linemap import LineMap
-from lipmap.mapping.extract import depth_residuals
+from lipmap.mapping.extract import _depth_pixels, depth_residuals
 from lipmap.mapping.keyframes import KeyframeConfig, keyframe_views
 from lipmap.planes.io import load_planes
 
@@ -58,11 +58,8 @@ def _signed_off(points, views, vis, depth) -> np.ndarray:
     for vi in vis:
         v = views[vi]
         d = depth[v.name]
-        H, W = d.shape
         uv, z = geo.project_points(points, v.cam_from_world, v.camera)
-        c = np.floor(uv[:, 0] * W / v.camera.width).astype(int)
-        r = np.floor(uv[:, 1] * H / v.camera.height).astype(int)
-        ok = (z > 0) & (c >= 0) & (c < W) & (r >= 0) & (r < H)
+        r, c, ok = _depth_pixels(uv, z, v.camera, d.shape)
         dd = d[r[ok], c[ok]]
         out.append((z[ok] - dd)[dd > 0])
     return np.concatenate(out) if out else np.zeros(0)

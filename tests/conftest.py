@@ -10,6 +10,21 @@ import torch
 torch.set_num_threads(min(2, os.cpu_count() or 1))
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def benchmark_module(relpath: str):
+    """A benchmark script (``relpath`` under ``benchmarks/``) imported as a module; ``benchmarks/`` goes on the path
+    first, so that the scripts' own ``import results`` works."""
+    import importlib.util
+    import sys
+
+    if str(REPO / "benchmarks") not in sys.path:
+        sys.path.insert(0, str(REPO / "benchmarks"))
+    path = REPO / "benchmarks" / relpath
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 SHARED_DATA = (REPO / ".." / "shared" / "data").resolve()
 
 

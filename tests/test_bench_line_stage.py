@@ -1,11 +1,9 @@
 """benchmarks/perf/bench_line_stage.py times the parts of the line stage without counting a part twice."""
-import importlib.util
-import sys
 from dataclasses import replace
 
 import pytest
 
-from conftest import REPO
+from conftest import benchmark_module
 from test_line_rescue import CAM, _scene
 
 from localization.linequery import LineQuery
@@ -13,11 +11,7 @@ from localization.pipeline import LineRescueConfig, LocalizationConfig, localize
 
 
 def _bench():
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    spec = importlib.util.spec_from_file_location("bench_line_stage", REPO / "benchmarks" / "perf" / "bench_line_stage.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark_module("perf/bench_line_stage.py")
 
 
 class _Points:

@@ -1,12 +1,10 @@
 """benchmarks/edge_depth.py: a plane edge on the surface and one floating in front of it, told apart by the sensor
 depth of the views that track them."""
-import importlib.util
-import sys
 
 import numpy as np
 import pytest
 
-from conftest import REPO
+from conftest import benchmark_module
 from lipmap import geometry as geo
 from lipmap.datasets import load_scene
 from lipmap.datasets.synthetic import SynthConfig, generate_scene
@@ -18,11 +16,7 @@ MINI = SynthConfig("mini", 240, 180, 196.875, 196.875, 120.0, 90.0, n_mapping=4,
 
 
 def _bench():
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    spec = importlib.util.spec_from_file_location("edge_depth", REPO / "benchmarks" / "edge_depth.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark_module("edge_depth.py")
 
 
 def test_a_floating_plane_edge_is_found_with_its_plane_in_front_of_the_surface(tmp_path):

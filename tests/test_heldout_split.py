@@ -1,18 +1,14 @@
 """The held-out-viewpoint split of the RedKitchen mini (benchmarks/7scenes/make_heldout_split.py)."""
-import importlib.util
 
 import numpy as np
 
 from lipmap.datasets import load_scene
 
-from conftest import REPO
+from conftest import benchmark_module
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("make_heldout_split", REPO / "benchmarks" / "7scenes" / "make_heldout_split.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark_module("7scenes/make_heldout_split.py")
 
 
 def test_heldout_split_maps_the_first_stretch_and_queries_the_second(redkitchen_root, tmp_path):

@@ -1,16 +1,12 @@
 """The README's tables are generated from benchmarks/results/ (one source per figure): they must agree, and
 every results file must say how it was made."""
-import importlib.util
 import json
 
-from conftest import REPO
+from conftest import REPO, benchmark_module
 
 
 def _readme_tables():
-    spec = importlib.util.spec_from_file_location("readme_tables", REPO / "benchmarks" / "readme_tables.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark_module("readme_tables.py")
 
 
 def test_readme_tables_are_generated_from_the_results():

@@ -1,12 +1,10 @@
 """The rescue's trace (localize_query(trace=...)) and benchmarks/rescue_starts.py's account of it."""
-import importlib.util
-import sys
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from conftest import REPO
+from conftest import benchmark_module
 from test_line_rescue import CAM, _Model, _off, _Points, _scene
 
 from lipmap.poses import pose_errors
@@ -15,11 +13,7 @@ from localization.pipeline import LineRescueConfig, LocalizationConfig, localize
 
 
 def _bench():
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    spec = importlib.util.spec_from_file_location("rescue_starts", REPO / "benchmarks" / "rescue_starts.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark_module("rescue_starts.py")
 
 
 @pytest.mark.parametrize("solver", ["ransac", "refine"])
