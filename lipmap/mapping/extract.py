@@ -183,6 +183,18 @@ def _depth_pixels(uv: np.ndarray, z: np.ndarray, camera, depth_shape) -> tuple:
     return np.clip(row, 0, H - 1), np.clip(col, 0, W - 1), inside
 
 
+def nearest_depth_residual(depth: np.ndarray, row: np.ndarray, col: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Smallest |z - depth| over the 3x3 pixels around (row, col) of a depth map (0 = invalid); inf where none of
+    them has depth. At a depth step one side agrees with a point on the step's edge."""
+    H, W = depth.shape
+    best = np.full(len(z), np.inf)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            d = depth[np.clip(row + dy, 0, H - 1), np.clip(col + dx, 0, W - 1)]
+            best = np.where(d > 0, np.minimum(best, np.abs(d - z)), best)
+    return best
+
+
 def visible_mask(points_world: np.ndarray, view, depth: np.ndarray | None, tol: float) -> np.ndarray:
     """Which points (N, 3) are in view and not occluded according to the view's depth map (0: unknown)."""
     uv, z = geo.project_points(points_world, view.cam_from_world, view.camera)
@@ -221,15 +233,9 @@ def depth_residuals(lines: np.ndarray, tracks: np.ndarray, views, depth_by_view:
         if depth is None:
             continue
         ids = pairs[pairs[:, 1] == vi, 0]
-        H, W = depth.shape
         uv, z = geo.project_points(samples[ids].reshape(-1, 3), v.cam_from_world, v.camera)
         row, col, inside = _depth_pixels(uv, z, v.camera, depth.shape)
-        best = np.full(len(z), np.inf)
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                d = depth[np.clip(row + dy, 0, H - 1), np.clip(col + dx, 0, W - 1)]
-                best = np.where((d > 0) & inside, np.minimum(best, np.abs(d - z)), best)
-        best = best.reshape(len(ids), n)
+        best = np.where(inside, nearest_depth_residual(depth, row, col, z), np.inf).reshape(len(ids), n)
         for li, r in zip(ids, best):
             per_line[li].append(r[np.isfinite(r)])
     for li, rs in enumerate(per_line):

@@ -11,6 +11,7 @@ import torch
 
 from ..frames import DEFAULT_CAPACITY, LRU
 from .assign import best_edges, first_hit_torch, line_regions, pixel_rays_world
+from .extract import nearest_depth_residual
 from .losses import line_loss
 
 
@@ -156,10 +157,6 @@ class LineSupervision:
         ray = np.stack([(col + 0.5 - camera.cx) / camera.fx, (row + 0.5 - camera.cy) / camera.fy, np.ones(len(col))], 1)
         with np.errstate(divide="ignore", invalid="ignore"):
             z = (n * c_cam[:, 0]).sum(1) / (n * ray).sum(1)  # ray at z = 1: the hit's parameter is its depth
-        best = np.full(len(z), np.inf)
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                d = depth[np.clip(row + dy, 0, H - 1), np.clip(col + dx, 0, W - 1)]
-                best = np.where(d > 0, np.minimum(best, np.abs(z - d)), best)
+        best = nearest_depth_residual(depth, row, col, z)
         out[m] = np.where(np.isfinite(best), best <= self.depth_gate, -1)
         return out
