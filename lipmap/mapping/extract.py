@@ -183,16 +183,24 @@ def _depth_pixels(uv: np.ndarray, z: np.ndarray, camera, depth_shape) -> tuple:
     return np.clip(row, 0, H - 1), np.clip(col, 0, W - 1), inside
 
 
-def nearest_depth_residual(depth: np.ndarray, row: np.ndarray, col: np.ndarray, z: np.ndarray) -> np.ndarray:
+def depth_window(row: np.ndarray, col: np.ndarray, shape) -> np.ndarray:
+    """Flat indices :math:`(N, 9)` of the 3x3 pixels around (row, col) in a map of ``shape`` (H, W), clamped at
+    the border: build once for pixels that stay put (a line's region), gather from each depth map."""
+    H, W = shape
+    return np.stack([np.clip(row + dy, 0, H - 1) * W + np.clip(col + dx, 0, W - 1)
+                     for dy in (-1, 0, 1) for dx in (-1, 0, 1)], 1)
+
+
+def nearest_depth_residual(depth: np.ndarray, row: np.ndarray, col: np.ndarray, z: np.ndarray,
+                           window: np.ndarray | None = None) -> np.ndarray:
     """Smallest |z - depth| over the 3x3 pixels around (row, col) of a depth map (0 = invalid); inf where none of
-    them has depth. At a depth step one side agrees with a point on the step's edge."""
-    H, W = depth.shape
-    best = np.full(len(z), np.inf)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            d = depth[np.clip(row + dy, 0, H - 1), np.clip(col + dx, 0, W - 1)]
-            best = np.where(d > 0, np.minimum(best, np.abs(d - z)), best)
-    return best
+    them has depth. At a depth step one side agrees with a point on the step's edge. ``window``: the pixels'
+    :func:`depth_window`, when the caller keeps it (``row``/``col`` are then unused)."""
+    if window is None:
+        window = depth_window(row, col, depth.shape)
+    d = depth.reshape(-1)[window]
+    res = np.where(d > 0, np.abs(d - np.asarray(z)[:, None]), np.inf)
+    return res.min(1) if len(res) else np.full(0, np.inf)
 
 
 def visible_mask(points_world: np.ndarray, view, depth: np.ndarray | None, tol: float) -> np.ndarray:
