@@ -108,3 +108,33 @@ def test_the_fast_budget_is_the_same_whatever_the_views_and_epochs_can_cap_it():
 
     with pytest.raises(InputError):
         Schedule.of(PlaneOptConfig(epochs=0, iterations=0), 10)
+
+
+def test_prune_and_split_rounds_follow_the_iterations_not_the_number_of_views(synthetic_root):
+    """``restructure_every``: the same number of prune/split rounds whatever the views (few views used to split
+    twice as often under an iteration budget, more views than iterations never); equal to the epoch cadence when
+    it is the epoch's length."""
+    from lipmap.datasets import load_scene
+    from lipmap.planes.init import PlaneInitConfig, init_planes
+    from lipmap.planes.optimize import PlaneOptConfig, TargetStore, optimize_planes
+
+    torch.set_num_threads(1)
+    scene = load_scene("synthetic", synthetic_root, "room-s3")
+    views = scene.mapping[:4]
+    init = init_planes(views, PlaneInitConfig(n_planes=200, voxel_size=0.05))
+    base = dict(iterations=12, split=True, split_grad_threshold=1e-6, progress=False)  # every seen plane splits
+    by_epoch, h_e = optimize_planes(views, init, PlaneOptConfig.preset("fast", **base))
+    by_four, h_4 = optimize_planes(views, init, PlaneOptConfig.preset("fast", restructure_every=4, **base))
+    assert len(h_e["loss"]) == len(h_4["loss"]) == 3
+    for a, b in zip(by_epoch.tensors(), by_four.tensors()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    # rounds of 6 iterations over 4 views: 2 rounds, and the one before the last step splits
+    _, h_6 = optimize_planes(TargetStore(views, PlaneOptConfig.preset("fast", **base)), init,
+                             PlaneOptConfig.preset("fast", restructure_every=6, **base))
+    assert len(h_6["loss"]) == 2 and h_6["split"][0] > 0 and h_6["split"][-1] == 0
+    # more views than the budget (4 views, 3 iterations): one epoch, cut short; rounds still come every
+    # iteration and split
+    _, h_big = optimize_planes(views, init, PlaneOptConfig.preset("fast", restructure_every=1, **{**base, "iterations": 3}))
+    assert len(h_big["loss"]) == 3 and h_big["split"][0] > 0 and h_big["split"][-1] == 0
+    _, h_once = optimize_planes(views, init, PlaneOptConfig.preset("fast", **{**base, "iterations": 3}))
+    assert len(h_once["loss"]) == 1 and h_once["split"] == [0]  # the epoch cadence: no split at all

@@ -2,8 +2,8 @@
 
 One view per iteration (seeded order), Adam on centre, quaternion and radii, plane loss
 ``2 * depth L1 + 5 * (normal L1 + (1 - cos))`` weighted ``10 * max(exp(-i / max_iters), 0.1)``,
-re-centring after every step, and once per epoch pruning (smallest radius <= 1.25e-3 or seen by
-no view) and splitting (mean |grad| of an axis's radii >= threshold). Reference-code facts are in
+re-centring after every step, and once per epoch (or every ``restructure_every`` iterations) pruning
+(smallest radius <= 1.25e-3 or seen by no view) and splitting (mean |grad| of an axis's radii >= threshold). Reference-code facts are in
 DESIGN.md; what is ours is said where it is done.
 
 Hook for the line loss: ``optimize_planes(..., extra_loss=f)`` adds ``f(view, planes, iteration,
@@ -64,8 +64,11 @@ class PlaneOptConfig:
     prune_min_radius: float = 1.25e-3
     prune_unseen: bool = True
     split: bool = True
-    split_grad_threshold: float = 0.2  # mean |d loss / d radius| over the epoch (see prune_and_split)
+    split_grad_threshold: float = 0.2  # mean |d loss / d radius| over the round (see prune_and_split)
     split_stop_frac: float = 5000 / 6000  # no splitting after this fraction of the iterations
+    # iterations between prune/split rounds; 0 = once per epoch (the paper). With an iteration budget an epoch's
+    # length is the number of views: few views would split twice as often, thousands never
+    restructure_every: int = 0
     split_into_four: bool = True  # both axes over the threshold -> 4 children, else 2
     split_grad_reduce: str = "mean"  # |grad| of an axis from its two radii: "mean", or "max" (reference code)
     depth_loss_on_rendered: bool = False  # depth L1 only where the render has alpha > 1e-5 (reference code)
@@ -115,6 +118,7 @@ def _fast_lines() -> PlaneOptConfig:
         lr_final_frac=0.1,  # annealed: edges settle to the pixel level at the end
         split=True,
         split_grad_threshold=0.6,  # adds planes where lines pull; 0.2 shatters the planes
+        restructure_every=50,  # the 50-view mini's epoch, where the threshold was chosen, for any number of views
         init=replace(fast.init, n_planes=6000),  # more edges to align with the detected lines
     )
 
@@ -392,7 +396,8 @@ class Schedule:
 
 @dataclass
 class _EpochStats:
-    """What one epoch gathers for pruning, splitting and the history."""
+    """What one prune/split round (an epoch, or ``restructure_every`` iterations) gathers for pruning,
+    splitting and the history."""
 
     seen: torch.Tensor  # (K,) bool: planes some view rendered
     grad_sum: torch.Tensor  # (K, 2) sum of mean |grad| of the x radii and of the y radii
@@ -479,15 +484,15 @@ def _train_view(params, opt, tgt: ViewTarget, it: int, sched: Schedule, extra_lo
     return total
 
 
-def _restructure(params: list, opt, stats: _EpochStats, epoch: int, it: int, sched: Schedule, hist: dict):
-    """Once per epoch: prune and split; returns (params, optimizer, index map) of the new plane set."""
+def _restructure(params: list, opt, stats: _EpochStats, it: int, sched: Schedule, hist: dict):
+    """One prune/split round (after iteration ``it``); returns (params, optimizer, index map) of the new plane set."""
     conf = sched.conf
     radii_grad = stats.radii_grad()
     seen_g = radii_grad[stats.grad_count > 0].max(1).values
     if len(seen_g):
         q = torch.quantile(seen_g.float(), torch.tensor([0.5, 0.9, 0.99], device=seen_g.device)).tolist()
         hist.setdefault("radii_grad_q50_q90_q99", []).append([round(x, 4) for x in q])
-    do_split = conf.split and it <= sched.split_stop and epoch < sched.n_epochs - 1
+    do_split = conf.split and it <= sched.split_stop and it < sched.max_iters  # never after the last step
     current = Planes(*(p.detach() for p in params))
     new, imap = prune_and_split(
         current,
@@ -514,7 +519,7 @@ def _record_epoch(hist: dict, stats: _EpochStats, imap, n_planes: int, lam: floa
                        ("planes", n_planes), ("pruned", imap.n_pruned), ("unseen", imap.n_unseen),
                        ("split", imap.n_split), ("lambda", lam), ("seconds", seconds), ("skipped", stats.skipped)):
         hist[key].append(value)
-    logger.debug("epoch %d: loss %.4f depth %.4f normal %.4f planes %d (-%d, split %d)", epoch, hist["loss"][-1],
+    logger.debug("round %d: loss %.4f depth %.4f normal %.4f planes %d (-%d, split %d)", epoch, hist["loss"][-1],
                  hist["depth"][-1], hist["normal"][-1], n_planes, imap.n_pruned, imap.n_split)
 
 
@@ -556,7 +561,7 @@ def optimize_planes(
             initial clean-up) so per-plane state kept outside can follow.
 
     Returns:
-        (optimized :class:`Planes` on the optimization device, history dict with per-epoch
+        (optimized :class:`Planes` on the optimization device, history dict with per-round
         ``loss``, ``depth``, ``normal``, ``planes``, ``pruned``, ``split``, ``seconds``).
     """
     conf = conf or PlaneOptConfig.preset("fast")
@@ -571,20 +576,26 @@ def optimize_planes(
     rng = np.random.default_rng(conf.seed)
     hist = {k: [] for k in HISTORY_KEYS}
     bar = _progress_bar(conf, sched.max_iters)
-    it = 0
+    every = conf.restructure_every or len(targets)  # iterations per prune/split round
+    it, n_round = 0, 0
+    t0 = time.time()
+    stats = _EpochStats.zeros(len(params[0]), dev)
     for epoch in range(sched.n_epochs):
-        t0 = time.time()
-        stats = _EpochStats.zeros(len(params[0]), dev)
         for vi in rng.permutation(len(targets))[: sched.max_iters - it]:
             total = _train_view(params, opt, targets[vi], it, sched, extra_loss, stats)
             it += 1
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{float('nan') if total is None else float(total.detach()):.4f}", planes=len(params[0]))
-        params, opt, imap = _restructure(params, opt, stats, epoch, it, sched, hist)
-        if on_restructure:
-            on_restructure(imap)
-        _record_epoch(hist, stats, imap, len(params[0]), sched.lam(it - 1), time.time() - t0, epoch)
+            if it % every and it < sched.max_iters:
+                continue
+            params, opt, imap = _restructure(params, opt, stats, it, sched, hist)
+            if on_restructure:
+                on_restructure(imap)
+            _record_epoch(hist, stats, imap, len(params[0]), sched.lam(it - 1), time.time() - t0, n_round)
+            n_round += 1
+            t0 = time.time()
+            stats = _EpochStats.zeros(len(params[0]), dev)
     if bar is not None:
         bar.close()
     return Planes(*(p.detach() for p in params)), hist
@@ -644,7 +655,7 @@ def fit_planes(scene, out_dir, conf: Optional[PlaneOptConfig] = None, extra_loss
                 stamp=stamp)
     export_planes_ply(Path(out_dir) / "planes.ply", planes)
     logger.info(
-        "planes: %d after %d epochs, final loss %.4f, %.1f s (init %.1f s) -> %s",
+        "planes: %d after %d prune/split rounds, final loss %.4f, %.1f s (init %.1f s) -> %s",
         len(planes), len(hist["loss"]), hist["loss"][-1] if hist["loss"] else float("nan"), hist["total_seconds"], t_init, path,
     )
     return path
