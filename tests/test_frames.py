@@ -138,3 +138,10 @@ def test_prune_and_split_rounds_follow_the_iterations_not_the_number_of_views(sy
     assert len(h_big["loss"]) == 3 and h_big["split"][0] > 0 and h_big["split"][-1] == 0
     _, h_once = optimize_planes(views, init, PlaneOptConfig.preset("fast", **{**base, "iterations": 3}))
     assert len(h_once["loss"]) == 1 and h_once["split"] == [0]  # the epoch cadence: no split at all
+    # "seen by no view" waits for as many iterations as views: rounds of 1 iteration over 4 views prune no plane
+    # as unseen before the 4th, then those no view of the 4 saw (the epoch cadence's count)
+    no_split = {**base, "split": False, "iterations": 4}
+    _, h_e4 = optimize_planes(views, init, PlaneOptConfig.preset("fast", **no_split))
+    _, h_r1 = optimize_planes(views, init, PlaneOptConfig.preset("fast", restructure_every=1, **no_split))
+    assert h_e4["unseen"][0] > 0
+    assert h_r1["unseen"][:3] == [0, 0, 0] and h_r1["unseen"][3] == h_e4["unseen"][0]

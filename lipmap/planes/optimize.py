@@ -484,8 +484,9 @@ def _train_view(params, opt, tgt: ViewTarget, it: int, sched: Schedule, extra_lo
     return total
 
 
-def _restructure(params: list, opt, stats: _EpochStats, it: int, sched: Schedule, hist: dict):
-    """One prune/split round (after iteration ``it``); returns (params, optimizer, index map) of the new plane set."""
+def _restructure(params: list, opt, stats: _EpochStats, it: int, sched: Schedule, hist: dict, seen=None):
+    """One prune/split round (after iteration ``it``); ``seen``: the planes some view saw, when planes no view saw
+    are to be pruned now (None: not this round). Returns (params, optimizer, index map) of the new plane set."""
     conf = sched.conf
     radii_grad = stats.radii_grad()
     seen_g = radii_grad[stats.grad_count > 0].max(1).values
@@ -496,7 +497,7 @@ def _restructure(params: list, opt, stats: _EpochStats, it: int, sched: Schedule
     current = Planes(*(p.detach() for p in params))
     new, imap = prune_and_split(
         current,
-        seen=stats.seen if conf.prune_unseen else None,
+        seen=seen if conf.prune_unseen else None,
         radii_grad=radii_grad if do_split else None,
         min_radius=conf.prune_min_radius,
         split_threshold=conf.split_grad_threshold if do_split else None,
@@ -577,9 +578,10 @@ def optimize_planes(
     hist = {k: [] for k in HISTORY_KEYS}
     bar = _progress_bar(conf, sched.max_iters)
     every = conf.restructure_every or len(targets)  # iterations per prune/split round
-    it, n_round = 0, 0
+    it, n_round, since = 0, 0, 0
     t0 = time.time()
     stats = _EpochStats.zeros(len(params[0]), dev)
+    seen_acc = torch.zeros(len(params[0]), dtype=torch.bool, device=dev)  # over the rounds since the last unseen pruning
     for epoch in range(sched.n_epochs):
         for vi in rng.permutation(len(targets))[: sched.max_iters - it]:
             total = _train_view(params, opt, targets[vi], it, sched, extra_loss, stats)
@@ -587,9 +589,16 @@ def optimize_planes(
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{float('nan') if total is None else float(total.detach()):.4f}", planes=len(params[0]))
+            since += 1
             if it % every and it < sched.max_iters:
                 continue
-            params, opt, imap = _restructure(params, opt, stats, it, sched, hist)
+            # "seen by no view" needs as many iterations as views since the last such pruning: a round of 50
+            # iterations over 500 views would prune the planes of the other 450
+            seen_acc |= stats.seen
+            prune_unseen = since >= len(targets)
+            params, opt, imap = _restructure(params, opt, stats, it, sched, hist, seen_acc if prune_unseen else None)
+            seen_acc = torch.zeros(len(params[0]), dtype=torch.bool, device=dev) if prune_unseen else seen_acc[imap.parent]
+            since = 0 if prune_unseen else since
             if on_restructure:
                 on_restructure(imap)
             _record_epoch(hist, stats, imap, len(params[0]), sched.lam(it - 1), time.time() - t0, n_round)
