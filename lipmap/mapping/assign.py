@@ -63,11 +63,16 @@ def line_regions(lines: np.ndarray, width: int, height: int, radius: float = 1.0
     return pix[keep], cidx[keep]
 
 
-def pixel_rays_world(pixels: np.ndarray, cam_from_world: np.ndarray, camera):
-    """World-frame ray origins (P, 3) and unit directions (P, 3) through pixel centres (col, row)."""
+def pixel_rays_camera(pixels: np.ndarray, camera) -> np.ndarray:
+    """Camera-frame rays (P, 3) through pixel centres (col, row), scaled to z = 1 (a hit's parameter is its depth)."""
     x = (pixels[:, 0] + 0.5 - camera.cx) / camera.fx
     y = (pixels[:, 1] + 0.5 - camera.cy) / camera.fy
-    d_cam = np.stack([x, y, np.ones_like(x)], -1)
+    return np.stack([x, y, np.ones_like(x)], -1)
+
+
+def pixel_rays_world(pixels: np.ndarray, cam_from_world: np.ndarray, camera):
+    """World-frame ray origins (P, 3) and unit directions (P, 3) through pixel centres (col, row)."""
+    d_cam = pixel_rays_camera(pixels, camera)
     R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
     d = d_cam @ R
     d /= np.linalg.norm(d, axis=1, keepdims=True)

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from ..frames import DEFAULT_CAPACITY, LRU
-from .assign import best_edges, first_hit_torch, line_regions, pixel_rays_world
+from .assign import best_edges, first_hit_torch, line_regions, pixel_rays_camera, pixel_rays_world
 from .extract import depth_window, nearest_depth_residual
 from .losses import line_loss
 
@@ -66,9 +66,7 @@ class LineSupervision:
         # the gate's per-pixel constants: each region pixel's ray at z = 1 and its 3x3 depth window
         name, full_width, width, height, camera = key
         pix, _ = self._regions(key[:4])
-        col, row = pix[:, 0], pix[:, 1]
-        ray = np.stack([(col + 0.5 - camera.cx) / camera.fx, (row + 0.5 - camera.cy) / camera.fy, np.ones(len(col))], 1)
-        return ray, depth_window(row, col, (height, width))
+        return pixel_rays_camera(pix, camera), depth_window(pix[:, 1], pix[:, 0], (height, width))
 
     def settings(self) -> dict:
         """What shapes the loss, for the planes' artifact stamp."""
