@@ -3,7 +3,7 @@ mapping views and 100 / 500 queries, at default settings.
 
     python -m localization.cli synth --preset large --seed 0 --out DATA      # 5 rooms, 1,500 + 500 frames, 640x480
     python benchmarks/perf/bench_scale.py --root DATA --scene room-s0 --work /tmp/scale
-        [--views 100 400 1500] [--queries 100 500] [--loc-views 100]
+        [--views 100 400 1500] [--queries 100 500] [--loc-views 100] [--tag TAG]
 
 Each measurement runs in a fresh process (so its peak RSS is its own): ``map_scene`` (method lipmap, preset
 fast) on V views spread evenly over the mapping frames (the same rooms, seen more densely), then
@@ -99,7 +99,9 @@ def worker_map(args) -> list:
     kf = lm.metadata.get("keyframes", {})
     rows = [{"views": args.n, "queries": 0, "stage": s, "seconds": round(sec, 2), "peak_rss_mb": round(rss, 1),
              "device": device()} for s, sec, rss in stages]
-    rows[-1].update({"n_keyframes": kf.get("n_keyframes"), "n_lines": len(lm), "f@5cm": round(f5, 4)})
+    rows[-1].update({"n_keyframes": kf.get("n_keyframes"), "n_lines": len(lm), "f@5cm": round(f5, 4),
+                     "n_planes": lm.metadata.get("n_planes"), "max_planes": max(hist.get("planes") or [0]),
+                     "prune_split_rounds": len(hist.get("planes") or []), "splits": int(sum(hist.get("split") or []))})
     return rows
 
 
@@ -221,8 +223,19 @@ def estimate(rows: list, kf_rate: float) -> dict:
 
 def _tables(rows: list, est: dict) -> tuple:
     header = ["views", "queries", "stage", "seconds", "peak RSS (MB)", "keyframes", "lines", "F@5cm"]
-    table = {"header": header, "rows": [[r["views"], r["queries"] or "", r["stage"], r["seconds"], r["peak_rss_mb"],
-                                         r.get("n_keyframes", ""), r.get("n_lines", ""), r.get("f@5cm", "")] for r in rows]}
+    rounds = any("prune_split_rounds" in r for r in rows)
+    if rounds:
+        header += ["planes (most during the run)", "prune/split rounds", "splits"]
+
+    def row(r):
+        out = [r["views"], r["queries"] or "", r["stage"], r["seconds"], r["peak_rss_mb"], r.get("n_keyframes", ""),
+               r.get("n_lines", ""), r.get("f@5cm", "")]
+        if rounds:
+            planes = f"{r['n_planes']} ({r['max_planes']})" if r.get("n_planes") is not None else ""
+            out += [planes, r.get("prune_split_rounds", ""), r.get("splits", "")]
+        return out
+
+    table = {"header": header, "rows": [row(r) for r in rows]}
     if not est:
         return table, None
     eh = ["scene", "mapping frames", "keyframes", "line map (h)", "point map (h)", "queries (h)"]
@@ -244,6 +257,8 @@ def main(argv=None):
     ap.add_argument("--loc-views", type=int, default=100)
     ap.add_argument("--preset", default="fast", help="mapping preset (the default is eval's; 'quick' for a smoke run)")
     ap.add_argument("--no-write", action="store_true", help="print only (smoke runs)")
+    ap.add_argument("--tag", default="", help="write perf-scale-TAG.json(l) instead, without the full-size estimate: "
+                                              "a partial rerun (say --views 1500 --queries) beside the full table")
     ap.add_argument("--sevenscenes-root", type=Path, default=REPO.parent / "shared/data/7scenes-redkitchen-mini",
                     help="the RedKitchen mini, whose poses give the keyframe rate of the full-size estimate")
     ap.add_argument("--estimate-from", type=Path, default=None, metavar="JSONL",
@@ -271,14 +286,14 @@ def main(argv=None):
     rows = [r for n in args.views for r in _run_worker(args, "map", n)]
     rows += [r for n in args.queries for r in _run_worker(args, "loc", n)]
     summary = _summary(rows)
-    est = estimate(rows, keyframe_rate(args.sevenscenes_root)) if args.sevenscenes_root.exists() else {}
+    est = estimate(rows, keyframe_rate(args.sevenscenes_root)) if args.sevenscenes_root.exists() and not args.tag else {}
     table, est_table = _tables(rows, est)
     print(json.dumps({**summary, "estimate": est}, indent=1))
     if args.no_write:
         return
-    (results.RESULTS / "perf-scale.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
-    results.write("perf-scale", {"scene": f"{args.root.name}/{args.scene}", "rows": rows, "summary": summary,
-                                 "table": table})
+    name = f"perf-scale-{args.tag}" if args.tag else "perf-scale"
+    (results.RESULTS / f"{name}.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    results.write(name, {"scene": f"{args.root.name}/{args.scene}", "rows": rows, "summary": summary, "table": table})
     if est_table:
         results.write("perf-scale-estimate", {"estimate": est, "table": est_table})
 
