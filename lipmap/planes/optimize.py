@@ -2,7 +2,7 @@
 
 One view per iteration (seeded order), Adam on centre, quaternion and radii, plane loss
 ``2 * depth L1 + 5 * (normal L1 + (1 - cos))`` weighted ``10 * max(exp(-i / max_iters), 0.1)``,
-re-centring after every step, and once per epoch (or every ``restructure_every`` iterations) pruning
+re-centring after every step, and once per epoch (or every ``restructure_every`` iterations, if longer) pruning
 (smallest radius <= 1.25e-3 or seen by no view) and splitting (mean |grad| of an axis's radii >= threshold). Reference-code facts are in
 DESIGN.md; what is ours is said where it is done.
 
@@ -66,8 +66,10 @@ class PlaneOptConfig:
     split: bool = True
     split_grad_threshold: float = 0.2  # mean |d loss / d radius| over the round (see prune_and_split)
     split_stop_frac: float = 5000 / 6000  # no splitting after this fraction of the iterations
-    # iterations between prune/split rounds; 0 = once per epoch (the paper). With an iteration budget an epoch's
-    # length is the number of views: few views would split twice as often, thousands never
+    # iterations between prune/split rounds, never fewer than an epoch (the paper's round); 0 = once per epoch.
+    # With an iteration budget an epoch is as long as the scene has views, so few views would split twice as often.
+    # Not shorter than an epoch: the split test averages a plane's radius gradient over the views of the round,
+    # and over a subset of them it splits on noise (large synthetic scene, 100 views in rounds of 50: 17,000 planes)
     restructure_every: int = 0
     split_into_four: bool = True  # both axes over the threshold -> 4 children, else 2
     split_grad_reduce: str = "mean"  # |grad| of an axis from its two radii: "mean", or "max" (reference code)
@@ -118,7 +120,7 @@ def _fast_lines() -> PlaneOptConfig:
         lr_final_frac=0.1,  # annealed: edges settle to the pixel level at the end
         split=True,
         split_grad_threshold=0.6,  # adds planes where lines pull; 0.2 shatters the planes
-        restructure_every=50,  # the 50-view mini's epoch, where the threshold was chosen, for any number of views
+        restructure_every=50,  # the 50-view mini's epoch, where the threshold was chosen, for fewer views
         init=replace(fast.init, n_planes=6000),  # more edges to align with the detected lines
     )
 
@@ -396,7 +398,7 @@ class Schedule:
 
 @dataclass
 class _EpochStats:
-    """What one prune/split round (an epoch, or ``restructure_every`` iterations) gathers for pruning,
+    """What one prune/split round (an epoch, or ``restructure_every`` iterations if longer) gathers for pruning,
     splitting and the history."""
 
     seen: torch.Tensor  # (K,) bool: planes some view rendered
@@ -577,28 +579,25 @@ def optimize_planes(
     rng = np.random.default_rng(conf.seed)
     hist = {k: [] for k in HISTORY_KEYS}
     bar = _progress_bar(conf, sched.max_iters)
-    every = conf.restructure_every or len(targets)  # iterations per prune/split round
-    it, n_round, since = 0, 0, 0
+    every = max(conf.restructure_every, len(targets))  # iterations per prune/split round: at least an epoch
+    it, n_round = 0, 0
+    visited = np.zeros(len(targets), dtype=bool)  # the views this round has trained on
     t0 = time.time()
     stats = _EpochStats.zeros(len(params[0]), dev)
-    seen_acc = torch.zeros(len(params[0]), dtype=torch.bool, device=dev)  # over the rounds since the last unseen pruning
     for epoch in range(sched.n_epochs):
         for vi in rng.permutation(len(targets))[: sched.max_iters - it]:
             total = _train_view(params, opt, targets[vi], it, sched, extra_loss, stats)
             it += 1
+            visited[vi] = True
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{float('nan') if total is None else float(total.detach()):.4f}", planes=len(params[0]))
-            since += 1
             if it % every and it < sched.max_iters:
                 continue
-            # "seen by no view" needs as many iterations as views since the last such pruning: a round of 50
-            # iterations over 500 views would prune the planes of the other 450
-            seen_acc |= stats.seen
-            prune_unseen = since >= len(targets)
-            params, opt, imap = _restructure(params, opt, stats, it, sched, hist, seen_acc if prune_unseen else None)
-            seen_acc = torch.zeros(len(params[0]), dtype=torch.bool, device=dev) if prune_unseen else seen_acc[imap.parent]
-            since = 0 if prune_unseen else since
+            # "seen by no view" only where the round trained on every view (not so in a last round cut short by
+            # the budget, or a round that is not a whole number of epochs and straddles two)
+            params, opt, imap = _restructure(params, opt, stats, it, sched, hist, stats.seen if visited.all() else None)
+            visited[:] = False
             if on_restructure:
                 on_restructure(imap)
             _record_epoch(hist, stats, imap, len(params[0]), sched.lam(it - 1), time.time() - t0, n_round)
