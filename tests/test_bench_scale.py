@@ -36,3 +36,19 @@ def test_a_tagged_rerun_writes_its_own_file_and_no_estimate(tmp_path, monkeypatc
     data = json.loads((tmp_path / "perf-scale-rounds.json").read_text())
     assert data["summary"]["mapping"]["time_ratio"] == 1.8
     assert len((tmp_path / "perf-scale-rounds.jsonl").read_text().splitlines()) == 4
+
+
+def test_the_estimate_takes_a_tagged_reruns_rows_over_the_full_runs(tmp_path):
+    full = _map_rows(100, 500.0, 100) + _map_rows(400, 480.0, 354) + [
+        {"views": 100, "queries": 100, "stage": "point_map", "seconds": 50.0, "peak_rss_mb": 900.0},
+        {"views": 100, "queries": 100, "stage": "per_query", "seconds": 1.2, "peak_rss_mb": 900.0}]
+    rerun = _map_rows(100, 660.0, 100) + _map_rows(400, 900.0, 354)
+    for name, rows in (("a.jsonl", full), ("b.jsonl", rerun)):
+        (tmp_path / name).write_text("".join(json.dumps(r) + "\n" for r in rows))
+    rows = bs.measured_rows([tmp_path / "a.jsonl", tmp_path / "b.jsonl"])
+    assert len(rows) == len(full)
+    total = {r["views"]: r["seconds"] for r in rows if r["stage"] == "mapping_total"}
+    assert total == {100: 660.0, 400: 900.0}
+    est = bs.estimate(rows, 0.2)
+    # line map = fixed + per keyframe, fitted through the rerun's two points; the query side from the full run
+    assert abs(est["line_map_per_keyframe_s"] - (900.0 - 660.0) / 254) < 1e-3 and est["per_query_s"] == 1.2

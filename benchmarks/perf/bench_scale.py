@@ -14,7 +14,8 @@ process's high-water mark at the end of the stage. Writes one JSON line per stag
 ``benchmarks/results/perf-scale.jsonl`` and the rows with their provenance and the growth ratios to
 ``benchmarks/results/perf-scale.json``. A rerun reuses the work folder's artifacts: delete it to time again.
 ``--estimate-from benchmarks/results/perf-scale.jsonl`` only redoes the full-size estimate from those measured
-rows, with the keyframe rate of today's keyframe rule (``--root``/``--work`` are then unused).
+rows, with the keyframe rate of today's keyframe rule (``--root``/``--work`` are then unused); with several files,
+a later file's rows replace an earlier one's of the same views, queries and stage (a tagged partial rerun).
 """
 from __future__ import annotations
 
@@ -196,6 +197,18 @@ def keyframe_rate(root) -> float:
     return len(select_keyframes(dense)) / len(dense)
 
 
+def measured_rows(paths: list) -> list:
+    """The rows of ``perf-scale*.jsonl`` files; a later file's row replaces an earlier one's of the same views,
+    queries and stage."""
+    rows = {}
+    for path in paths:
+        for line in Path(path).read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                rows[(r["views"], r["queries"], r["stage"])] = r
+    return list(rows.values())
+
+
 def estimate(rows: list, kf_rate: float) -> dict:
     """The full 7-Scenes reproduction on this machine, from the measured stages: line mapping as a fixed part plus
     a part per keyframe (least squares over the mapping runs), the point map per mapping image, and the query side
@@ -261,7 +274,7 @@ def main(argv=None):
                                               "a partial rerun (say --views 1500 --queries) beside the full table")
     ap.add_argument("--sevenscenes-root", type=Path, default=REPO.parent / "shared/data/7scenes-redkitchen-mini",
                     help="the RedKitchen mini, whose poses give the keyframe rate of the full-size estimate")
-    ap.add_argument("--estimate-from", type=Path, default=None, metavar="JSONL",
+    ap.add_argument("--estimate-from", type=Path, nargs="+", default=None, metavar="JSONL",
                     help="only redo the full-size estimate from measured rows (perf-scale.jsonl) with today's keyframe rule")
     ap.add_argument("--worker", choices=["map", "loc"], help=argparse.SUPPRESS)
     ap.add_argument("--n", type=int, help=argparse.SUPPRESS)
@@ -276,12 +289,12 @@ def main(argv=None):
         print(json.dumps(rows))
         return
     if args.estimate_from:
-        rows = [json.loads(line) for line in args.estimate_from.read_text().splitlines() if line.strip()]
+        rows = measured_rows(args.estimate_from)
         est = estimate(rows, keyframe_rate(args.sevenscenes_root))
         print(json.dumps(est, indent=1))
         if not args.no_write:
             results.write("perf-scale-estimate", {"estimate": est, "table": _tables(rows, est)[1],
-                                                  "measured_rows": str(args.estimate_from)})
+                                                  "measured_rows": [str(p) for p in args.estimate_from]})
         return
     rows = [r for n in args.views for r in _run_worker(args, "map", n)]
     rows += [r for n in args.queries for r in _run_worker(args, "loc", n)]
