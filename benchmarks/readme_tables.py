@@ -32,7 +32,8 @@ def _row(cells) -> str:
 
 def _machine(m: dict) -> str:
     gpu = f", {m['gpu']}" if m.get("gpu") else ""
-    return f"{m.get('cpu', '?')}, {m.get('cores', '?')} cores{gpu}"
+    env = "".join(f", {k}={v}" for k, v in m.get("env", {}).items())
+    return f"{m.get('cpu', '?')}, {m.get('cores', '?')} cores{gpu}{env}"
 
 
 def render_block(names: list[str]) -> str:

@@ -35,8 +35,12 @@ def _git(*args) -> str:
         return ""
 
 
+THREAD_ENV = ("OMP_WAIT_POLICY", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
 def machine() -> dict:
-    """CPU model and cores, memory, GPU (if torch sees one), Python and torch versions."""
+    """CPU model and cores, memory, GPU (if torch sees one), Python and torch versions, torch's threads and the
+    thread environment variables that were set."""
     cpu = platform.processor() or platform.machine()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -57,10 +61,15 @@ def machine() -> dict:
         import torch
 
         out["torch"] = torch.__version__
+        out["torch_threads"] = torch.get_num_threads()
         if torch.cuda.is_available():
             out["gpu"] = torch.cuda.get_device_name(0)
     except ImportError:
         pass
+    # thread settings change timings twofold (OMP_WAIT_POLICY=PASSIVE: slower alone, faster beside a busy process)
+    env = {k: os.environ[k] for k in THREAD_ENV if k in os.environ}
+    if env:
+        out["env"] = env
     return out
 
 

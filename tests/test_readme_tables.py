@@ -36,3 +36,15 @@ def test_a_block_renders_its_rows_and_provenance(tmp_path, monkeypatch):
     out = mod.render("x\n<!-- results: t -->\nold\n<!-- /results -->\ny\n")
     assert out.startswith("x\n<!-- results: t -->\n| a | b |\n| --- | --- |\n| 1 | 2 |\n|  | 3 |\n")
     assert "commit abc1234" in out and "`python benchmarks/x.py`" in out and out.endswith("<!-- /results -->\ny\n")
+
+
+def test_the_thread_environment_is_recorded_and_shown(monkeypatch):
+    """OMP_WAIT_POLICY=PASSIVE halves the plane optimization's speed alone: a timing says which it ran under."""
+    mod = _readme_tables()
+    monkeypatch.setenv("OMP_WAIT_POLICY", "PASSIVE")
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    m = mod.results.machine()
+    assert m["env"] == {"OMP_WAIT_POLICY": "PASSIVE"} and m["torch_threads"] >= 1
+    assert mod._machine(m).endswith("cores, OMP_WAIT_POLICY=PASSIVE")
+    monkeypatch.delenv("OMP_WAIT_POLICY")
+    assert "env" not in mod.results.machine() and mod._machine(mod.results.machine()).endswith(" cores")
