@@ -113,7 +113,9 @@ def main(argv=None):
                      f"{r['line_ms']:.0f}" if r["line_ms"] is not None else ""])
         out[name] = {"overrides": over, "median_t_cm": {k: float(np.median(x)) for k, x in r["t_cm"].items()},
                      "line_matches_per_query": r["line_matches"] / n_loc, "line_match_precision": prec,
-                     "median_ms_line_stage": r["line_ms"]}
+                     "median_ms_line_stage": r["line_ms"],
+                     # per localization (draw-major, queries in scene order; inf: no pose), for localization_cdf.py
+                     "t_cm": {k: x.tolist() for k, x in r["t_cm"].items()}}
         print("| " + " | ".join(map(str, rows[-1])) + " |", flush=True)
     name = f"localization-variants-{args.dataset}-{args.scene}-{args.method}-{args.pose_source}-{args.matches or 'all'}"
     name += f"-{args.tag}" if args.tag else ""
