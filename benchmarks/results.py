@@ -66,7 +66,7 @@ def machine() -> dict:
             out["gpu"] = torch.cuda.get_device_name(0)
     except ImportError:
         pass
-    # thread settings change timings twofold (OMP_WAIT_POLICY=PASSIVE: slower alone, faster beside a busy process)
+    # thread settings change timings severalfold: PASSIVE is slower alone, spinning far slower beside a busy process
     env = {k: os.environ[k] for k in THREAD_ENV if k in os.environ}
     if env:
         out["env"] = env
