@@ -103,6 +103,9 @@ class LocalizationConfig:
     # line_query: wide while the pose is the point-only one, narrower once lines have refined it; () = fixed gates
     line_gates: tuple = ((8.0, 3.0), (4.0, 2.0), (2.0, 1.0))
     line_rescue: LineRescueConfig = field(default_factory=LineRescueConfig)
+    # (m, deg): a narrowing round whose pose moves farther than this from the pose it started from is not taken (the
+    # rounds refine a pose; a RANSAC jump is a different solution that few right matches support). () = off
+    max_line_step: tuple = ()
     mapping: str = "fast"  # lipmap.mapping.pipeline preset
     # the LiP-Map map. With the rescue, lift's localizes better on redkitchen-sparse and the held-out split, lipmap's
     # on the RedKitchen mini (README, benchmarks/results)
@@ -245,6 +248,8 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
     for lconf in line_query_schedule(conf):
         tried = lq.match(lines2d, T, camera, lconf, visible)
         r = estimate_pose_point_line(pm.p2d, pm.p3d, tried["lines2d"], tried["lines3d"], camera, initial=T, conf=plconf)
+        if r["success"] and conf.max_line_step and not _within(r["cam_from_world"], T, *conf.max_line_step):
+            r = {**r, "success": False}
         if not r["success"]:
             m = m or tried  # the matches the pose rests on: the last successful refinement's
             break
@@ -360,16 +365,17 @@ def _rescue_by_refinement(pm, lines2d, priors: list, lq: LineQuery, camera, conf
     return best
 
 
+def _within(U: np.ndarray, T: np.ndarray, max_m: float, max_deg: float) -> bool:
+    dt, dr = pose_errors(U, T)
+    return dt <= max_m and dr <= max_deg
+
+
 def distinct_poses(poses: list, max_m: float, max_deg: float) -> list:
     """``poses`` without those within ``max_m`` and ``max_deg`` of an earlier one (the same start twice costs a RANSAC
     and finds the same lines)."""
-    def same(U, T):
-        dt, dr = pose_errors(U, T)
-        return dt <= max_m and dr <= max_deg
-
     out = []
     for T in poses:
-        if not any(same(U, T) for U in out):
+        if not any(_within(U, T, max_m, max_deg) for U in out):
             out.append(T)
     return out
 

@@ -254,3 +254,32 @@ def test_coarse_scoring_pass_keeps_the_best_hypothesis_and_narrows_the_second_pa
         H.LineEvidence.score = score
     assert n_one == 1 and sizes[1][1] == 20 and sizes[2] == (4, 60)
     assert pose_errors(T, one[0])[0] < 1e-6 and pose_errors(T, two[0])[0] < 1e-6
+
+
+def test_a_narrowing_round_that_jumps_beyond_max_line_step_is_not_taken(monkeypatch):
+    """The narrowing rounds refine a pose: a RANSAC solution far from the round's start is refused, and the query
+    keeps the pose of the last round that stayed within the step (here the point-only pose)."""
+    import localization.pipeline as P
+
+    T, ends, l2, pm = _scene(2, n_pts=30)
+    points = _Points(pm, _Model({}))
+    lq = LineQuery(ends)
+    real = P.estimate_pose_point_line
+    calls = []
+
+    def jumping(*a, **k):  # the first round's RANSAC lands 1 m away with every line "inlier"
+        r = real(*a, **k)
+        if not calls and r["success"]:
+            r = {**r, "cam_from_world": _off(r["cam_from_world"], 100, 0)}
+        calls.append(r)
+        return r
+
+    monkeypatch.setattr(P, "estimate_pose_point_line", jumping)
+    free = localize_query("q", CAM, points, l2, lq, LocalizationConfig())
+    assert pose_errors(T, np.array(free["point+line"]["cam_from_world"]))[0] > 0.5  # the jump is taken, never undone
+    calls.clear()
+    guarded = localize_query("q", CAM, points, l2, lq, replace(LocalizationConfig(), max_line_step=(0.3, 5.0)))
+    pl = guarded["point+line"]
+    assert pl["success"] and not pl["used_lines"] and len(calls) == 1  # refused, and the rounds stop there
+    assert pl["cam_from_world"] == guarded["point"]["cam_from_world"]
+    assert pose_errors(T, np.array(pl["cam_from_world"]))[0] < 0.01
