@@ -1,10 +1,11 @@
 """The share of queries localized within each translation error, per line map: where a median hides the
 difference (a median that falls among half-rescued queries moves by cm from one set of draws to the next).
 
-    python benchmarks/localization_cdf.py --name NAME 'LABEL=localization-variants-....json[:VARIANT]' ... [--title T]
+    python benchmarks/localization_cdf.py --name NAME 'LABEL=localization-variants-....json[:VARIANT][+...]' ... [--title T]
 
 Each curve is the point+line result of one variant (default ``default``) of a ``localization_variants.py`` results
-file (which keeps every localization's error); the point-only curve comes from the first file. Writes
+file (which keeps every localization's error), or of several joined by ``+`` (pooled: other draws of the same
+queries); the point-only curve comes from the first curve's files. Writes
 ``benchmarks/results/NAME.png`` and ``NAME.json`` (median and the share within 1, 2, 5, 10 and 20 cm per curve).
 """
 from __future__ import annotations
@@ -24,18 +25,24 @@ HEADER = ["curve", "localizations", "median cm", *(f"% within {t} cm" for t in T
 
 
 def load_curve(spec: str) -> tuple[str, dict]:
-    """``LABEL=FILE[:VARIANT]`` -> (label, the variant's ``t_cm`` dict: point / point+line arrays)."""
+    """``LABEL=FILE[:VARIANT][+FILE[:VARIANT]...]`` -> (label, the ``t_cm`` dict: point / point+line arrays, the
+    files' localizations pooled: draws of other seeds, say)."""
     label, sep, rest = spec.partition("=")
     if not sep:
         raise SystemExit(f"{spec!r}: expected LABEL=FILE[:VARIANT]")
-    path, _, variant = rest.partition(":")
+    parts = [_load_part(p) for p in rest.split("+")]
+    return label, {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def _load_part(part: str) -> dict:
+    path, _, variant = part.partition(":")
     path = Path(path) if Path(path).exists() else results.RESULTS / path
     data = json.loads(path.read_text())
     v = data["variants"].get(variant or "default")
     if v is None or "t_cm" not in v:
         raise SystemExit(f"{path}: no per-query errors for variant {variant or 'default'!r} "
                          "(made before localization_variants.py kept them: run it again)")
-    return label, {k: np.asarray(x, dtype=float) for k, x in v["t_cm"].items()}
+    return {k: np.asarray(x, dtype=float) for k, x in v["t_cm"].items()}
 
 
 def row(label: str, t: np.ndarray) -> list:

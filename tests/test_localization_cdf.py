@@ -55,3 +55,13 @@ def test_reads_what_localization_variants_writes(tmp_path, monkeypatch):
     cdf.main(["--name", "c", f"LiP-Map={written.name}"])  # a bare name is looked up in the results folder
     rows = json.loads((tmp_path / "c.json").read_text())["table"]["rows"]
     assert rows[1][:3] == ["LiP-Map", 3, "1.50"] and rows[0][2] == "2.00"
+
+
+def test_a_curve_pools_several_files(tmp_path, monkeypatch):
+    monkeypatch.setattr(cdf.results, "RESULTS", tmp_path)
+    a = _variants_file(tmp_path / "a.json", [1.0, 3.0], [0.5, 2.5])
+    b = _variants_file(tmp_path / "b.json", [9.0, 9.0], [30.0, 40.0], variant="s")
+    cdf.main(["--name", "p", f"both={a}+{b}:s"])
+    rows = json.loads((tmp_path / "p.json").read_text())["table"]["rows"]
+    assert rows[0][1] == 4 and rows[0][2] == "6.00"  # point-only pooled: 1, 3, 9, 9
+    assert rows[1][:3] == ["both", 4, "16.25"] and rows[1][3:6] == ["25.0", "25.0", "50.0"]
