@@ -15,7 +15,6 @@ run is recorded, since a run beside another job is not a measurement of the code
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import subprocess
