@@ -104,8 +104,9 @@ class LocalizationConfig:
     line_gates: tuple = ((8.0, 3.0), (4.0, 2.0), (2.0, 1.0))
     line_rescue: LineRescueConfig = field(default_factory=LineRescueConfig)
     # (m, deg): a narrowing round whose pose moves farther than this from the pose it started from is not taken (the
-    # rounds refine a pose; a RANSAC jump is a different solution that few right matches support). () = off
-    max_line_step: tuple = ()
+    # rounds refine a pose; a RANSAC jump is a different solution that few right matches support). () = off.
+    # Held-out split, 5 matches, 20 draws: 14.73 cm median against 15.23 without (README, `-step` variants)
+    max_line_step: tuple = (0.3, 5.0)
     mapping: str = "fast"  # lipmap.mapping.pipeline preset
     # the LiP-Map map. With the rescue, lift's localizes better on redkitchen-sparse and the held-out split, lipmap's
     # on the RedKitchen mini (README, benchmarks/results)

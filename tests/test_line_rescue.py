@@ -275,10 +275,10 @@ def test_a_narrowing_round_that_jumps_beyond_max_line_step_is_not_taken(monkeypa
         return r
 
     monkeypatch.setattr(P, "estimate_pose_point_line", jumping)
-    free = localize_query("q", CAM, points, l2, lq, LocalizationConfig())
+    free = localize_query("q", CAM, points, l2, lq, LocalizationConfig(max_line_step=()))
     assert pose_errors(T, np.array(free["point+line"]["cam_from_world"]))[0] > 0.5  # the jump is taken, never undone
     calls.clear()
-    guarded = localize_query("q", CAM, points, l2, lq, replace(LocalizationConfig(), max_line_step=(0.3, 5.0)))
+    guarded = localize_query("q", CAM, points, l2, lq, LocalizationConfig())  # the default: 0.3 m / 5 deg
     pl = guarded["point+line"]
     assert pl["success"] and not pl["used_lines"] and len(calls) == 1  # refused, and the rounds stop there
     assert pl["cam_from_world"] == guarded["point"]["cam_from_world"]
