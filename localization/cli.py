@@ -76,6 +76,18 @@ def cmd_info(args):
         print(f"  pose source: {s['pose_source']}   mapping camera extent {s['mapping_extent_m']} m")
 
 
+def _max_line_step(text: str) -> tuple:
+    if text.strip().lower() in ("off", "0"):
+        return ()
+    try:
+        m, deg = (float(x) for x in text.split(","))
+    except ValueError:
+        m = deg = None
+    if m is None or not (m > 0 and deg > 0):
+        raise InputError(f"--max-line-step takes 'METRES,DEGREES' (both > 0, e.g. 0.3,5) or 'off', got {text!r}")
+    return (m, deg)
+
+
 def eval_config(args):
     """The :class:`~localization.pipeline.LocalizationConfig` of ``lipmap-loc eval``'s options."""
     from dataclasses import replace
@@ -93,6 +105,8 @@ def eval_config(args):
         conf = replace(conf, line_rescue=replace(conf.line_rescue, weak_inliers=args.line_rescue))
     if args.rescue_solver:
         conf = replace(conf, line_rescue=replace(conf.line_rescue, solver=args.rescue_solver))
+    if args.max_line_step is not None:
+        conf = replace(conf, max_line_step=_max_line_step(args.max_line_step))
     if args.no_vanishing_points:
         hyp = replace(conf.line_rescue.hypotheses, upright=False)
         conf = replace(conf, line_rescue=replace(conf.line_rescue, hypotheses=hyp))
@@ -309,6 +323,10 @@ def _add_eval_parser(sub):
     p.add_argument("--rescue-solver", default=None, choices=["ransac", "refine"],
                    help="how the rescue estimates a pose from each start: PnPL RANSAC (default), or a robust refinement "
                         "in narrowing gates, about half the time and less accurate (README, Localization)")
+    p.add_argument("--max-line-step", default=None, metavar="M,DEG",
+                   help="a line refinement round whose pose moves farther than M metres or DEG degrees from its start "
+                        "is refused and the rounds stop (default %s; 'off': every round is taken)"
+                        % ",".join(f"{x:g}" for x in LocalizationConfig().max_line_step))
     p.add_argument("--no-vanishing-points", action="store_true",
                    help="the rescue starts from P3P poses only, without the two-point poses aligned by vanishing points "
                         "(for scenes whose lines do not run along a few dominant directions; README, Localization)")

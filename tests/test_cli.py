@@ -101,3 +101,12 @@ def test_eval_options_set_the_rescue():
     assert conf("--line-rescue", "0", "--line-query", "raycast").line_rescue.weak_inliers == 0
     assert conf("--line-query", "raycast").line_query.method == "raycast"
     assert conf().line_rescue.hypotheses.upright and not conf("--no-vanishing-points").line_rescue.hypotheses.upright
+    assert conf().max_line_step == (0.3, 5.0) and conf("--max-line-step", "0.15,3").max_line_step == (0.15, 3.0)
+    assert conf("--max-line-step", "off").max_line_step == ()
+
+
+def test_eval_bad_max_line_step(tmp_path, capsys):
+    for bad in ("0.3", "0.3,x", "-1,5", "0.3,5,1"):
+        assert main(["eval", "--dataset", "synthetic", "--out", str(tmp_path), f"--max-line-step={bad}"]) == 2
+        assert "--max-line-step takes 'METRES,DEGREES'" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # refused before any work
