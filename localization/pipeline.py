@@ -108,8 +108,8 @@ class LocalizationConfig:
     # Held-out split, 5 matches, 20 draws: 14.73 cm median against 15.23 without (README, `-step` variants)
     max_line_step: tuple = (0.3, 5.0)
     mapping: str = "fast"  # lipmap.mapping.pipeline preset
-    # the LiP-Map map. With the rescue, lift's localizes better on redkitchen-sparse and the held-out split, lipmap's
-    # on the RedKitchen mini (README, benchmarks/results)
+    # the LiP-Map map: with scarce points it localizes better than lift's on both mini scenes and the held-out split
+    # (lift's is ahead on the synthetic room; README, benchmarks/results)
     map_method: str = "lipmap"
 
     def digest(self) -> str:
