@@ -269,9 +269,9 @@ def _add_mapping_args(p, method_default: str):
     p.add_argument("--keyframes", default=None, metavar="CM,DEG",
                    help="map the views where the camera moved more than CM centimetres or turned more than DEG "
                         "degrees since the last one, and at least every 5th frame (default 5,5; 0 = every view)")
-    p.add_argument("--refine-lines", action="store_true",
-                   help="lipmap: refine each on-plane line against every mapping view that sees it before its track "
-                        "is built (longer tracks; off by default: no pose gain measured)")
+    p.add_argument("--refine-lines", nargs="?", const="on-plane", default=None, choices=["on-plane", "edges", "all"],
+                   help="lipmap: refine these lines (no value: the on-plane ones) against every mapping view that sees "
+                        "them before their tracks are built (off by default; README, Mapping)")
     p.add_argument("--skip-bad-frames", action="store_true", help="skip unreadable mapping frames (default: stop with an error)")
     p.add_argument("--overwrite", action="store_true", help="remake the artifacts instead of reusing them")
 
@@ -287,8 +287,8 @@ def _mapping_conf(args, **overrides):
         if not (cm >= 0 and deg >= 0):
             raise InputError(f"--keyframes thresholds must be >= 0, got {args.keyframes!r}")
         overrides["keyframes"] = {"min_translation": cm / 100.0, "min_rotation_deg": deg}
-    if getattr(args, "refine_lines", False):
-        overrides["refine"] = {"enabled": True}
+    if getattr(args, "refine_lines", None):
+        overrides["refine"] = {"enabled": True, "lines": args.refine_lines}
     return {"preset": args.preset, **overrides} if overrides else args.preset
 
 

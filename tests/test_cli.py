@@ -72,7 +72,14 @@ def test_keyframes_option_sets_the_mapping_keyframes(synthetic_root, tmp_path, c
     assert not get_conf(_mapping_conf(Namespace(preset="quick", keyframes="0"))).keyframes.enabled
     assert _mapping_conf(Namespace(preset="fast", keyframes=None)) == "fast"
     assert not get_conf("fast").refine.enabled
-    assert get_conf(_mapping_conf(Namespace(preset="fast", keyframes=None, refine_lines=True))).refine.enabled
+    refine = get_conf(_mapping_conf(Namespace(preset="fast", keyframes=None, refine_lines="on-plane"))).refine
+    assert refine.enabled and refine.lines == "on-plane"
+    assert get_conf(_mapping_conf(Namespace(preset="fast", keyframes=None, refine_lines="edges"))).refine.lines == "edges"
+    from localization.cli import build_parser
+
+    args = build_parser().parse_args(["map", "--dataset", "synthetic", "--root", "r", "--scene", "s", "--out", "o",
+                                      "--refine-lines"])
+    assert args.refine_lines == "on-plane"  # the flag alone keeps its old meaning
     scene = ["--dataset", "synthetic", "--root", str(synthetic_root), "--scene", "room-s3", "--out", str(tmp_path)]
     for bad in ("5", "a,b", "-1,5"):
         assert main(["map", *scene, f"--keyframes={bad}"]) == 2

@@ -223,3 +223,31 @@ def test_plane_or_input_depth_known_values():
     big = np.full((4, 6), 2.0, dtype=np.float32)
     small = np.full((2, 3), 2.5, dtype=np.float32)
     np.testing.assert_allclose(plane_or_input_depth(big, small, 0.03), np.full((4, 6), 2.5))
+
+
+def test_edge_refinement_moves_plane_edges_onto_their_detections():
+    """A plane 5 mm too large on every side gives edges 5 mm off the panel's (still within extraction's 2 px);
+    ``refine.lines="edges"`` moves them onto the four views' detections, and leaves them alone when off."""
+    corners, views = panel_scene()
+    lines = {v.name: detected(corners, v, shrink=0.05) for v in views}
+    depth = {v.name: raycast_depth(corners, v) for v in views}
+    scene = types.SimpleNamespace(mapping=views)
+
+    def panel_edge_offsets(refine):
+        conf = get_conf({"on_plane_lines": False, "refine": refine})
+        lm = lipmap_linemap(scene, _planes(corners, grow=0.005), lines, conf, depth)
+        assert (lm.planes["edge_line"][0] >= 0).all()
+        out = []
+        for e in range(4):
+            a, b = corners[0, e], corners[0, (e + 1) % 4]
+            l = lm.lines[lm.planes["edge_line"][0, e]]
+            d = (b - a) / np.linalg.norm(b - a)
+            out.append(np.linalg.norm((l - a) - ((l - a) @ d)[:, None] * d, axis=1).max())
+        return np.array(out)
+
+    plain = panel_edge_offsets({"enabled": False, "lines": "edges"})
+    assert plain.min() > 0.004, plain
+    on_plane_only = panel_edge_offsets({"enabled": True, "lines": "on-plane"})
+    assert np.allclose(on_plane_only, plain)
+    refined = panel_edge_offsets({"enabled": True, "lines": "edges"})
+    assert refined.max() < 0.0015, refined

@@ -128,6 +128,17 @@ def test_disabled_refinement_returns_the_map_unchanged():
     assert refine_linemap(lm, VIEWS, {}, RefineConfig(enabled=False)) is lm
 
 
+def test_refine_lines_must_name_which_lines():
+    import pytest
+
+    from lipmap.errors import InputError
+    from lipmap.mapping.pipeline import get_conf
+
+    assert get_conf({"refine": {"lines": "all"}}).refine.lines == "all"
+    with pytest.raises(InputError, match="refine.lines must be one of on-plane, edges, all, got 'edge'"):
+        get_conf({"refine": {"lines": "edge"}})
+
+
 def test_no_observations():
     out = refine_segments(TRUE, np.zeros(0, int), np.zeros((0, 2, 2)), np.zeros((0, 3, 4)))
     assert np.array_equal(out, TRUE)

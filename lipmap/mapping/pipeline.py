@@ -178,12 +178,16 @@ def lipmap_linemap(scene, planes, lines_by_view: dict, conf: MappingConfig, dept
             "n_observations": int(len(obs["plane"])), "n_planes": int(len(planes))}
     lm = add_tracks(LineMap(lines, tracks, planes=plane_dict, metadata=meta), scene.mapping, lines_by_view,
                     conf.extract, caster)
+    if conf.refine.enabled and conf.refine.lines in ("edges", "all"):
+        lm = refine_linemap(lm, scene.mapping, lines_by_view, conf.refine, caster)
+        lm = add_tracks(lm, scene.mapping, lines_by_view, conf.extract, caster)
     lm = _depth_check(lm, scene, conf, depth_by_view)
     lm.metadata["n_edge_lines"] = n_edges = len(lm)
     if conf.on_plane_lines:
         lm = _add_on_plane_lines(lm, scene, corners, lines_by_view, conf, depth_by_view)
         onp = np.arange(n_edges, len(lm))
-        lm = refine_linemap(lm, scene.mapping, lines_by_view, conf.refine, caster, which=onp)
+        if conf.refine.lines in ("on-plane", "all"):
+            lm = refine_linemap(lm, scene.mapping, lines_by_view, conf.refine, caster, which=onp)
         lm = add_tracks(lm, scene.mapping, lines_by_view, conf.extract, caster, which=onp)
     return lm
 

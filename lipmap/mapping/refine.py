@@ -21,6 +21,9 @@ import numpy as np
 
 from .. import geometry as geo
 from .. import logger
+from ..errors import InputError
+
+REFINE_LINES = ("on-plane", "edges", "all")
 
 
 @dataclass(frozen=True)
@@ -32,6 +35,12 @@ class RefineConfig:
     robust_px: float = 1.0  # Cauchy scale of the reprojection residuals
     prior_m: float = 0.02  # an endpoint this far from where it was weighs as much as 1 px in one view
     iterations: int = 5
+    # which lines of a LiP-Map map (MappingConfig.refine): "on-plane", "edges" or "all"
+    lines: str = "on-plane"
+
+    def __post_init__(self):
+        if self.lines not in REFINE_LINES:
+            raise InputError(f"refine.lines must be one of {', '.join(REFINE_LINES)}, got {self.lines!r}")
 
 
 def reprojection_residuals(lines: np.ndarray, line_index: np.ndarray, segments2d, projections) -> np.ndarray:
