@@ -269,9 +269,11 @@ def _add_mapping_args(p, method_default: str):
     p.add_argument("--keyframes", default=None, metavar="CM,DEG",
                    help="map the views where the camera moved more than CM centimetres or turned more than DEG "
                         "degrees since the last one, and at least every 5th frame (default 5,5; 0 = every view)")
-    p.add_argument("--refine-lines", nargs="?", const="on-plane", default=None, choices=["on-plane", "edges", "all"],
-                   help="lipmap: refine these lines (no value: the on-plane ones) against every mapping view that sees "
-                        "them before their tracks are built (off by default; README, Mapping)")
+    from lipmap.mapping.refine import REFINE_LINES
+
+    p.add_argument("--refine-lines", nargs="?", const="all", default=None, choices=list(REFINE_LINES),
+                   help="lipmap: refine these lines (no value: all) against every mapping view that sees them, then "
+                        "track them again (default: the preset's; fast refines the plane edges, quick and paper none)")
     p.add_argument("--skip-bad-frames", action="store_true", help="skip unreadable mapping frames (default: stop with an error)")
     p.add_argument("--overwrite", action="store_true", help="remake the artifacts instead of reusing them")
 

@@ -80,7 +80,7 @@ def test_keyframes_option_sets_the_mapping_keyframes(synthetic_root, tmp_path, c
 
     args = build_parser().parse_args(["map", "--dataset", "synthetic", "--root", "r", "--scene", "s", "--out", "o",
                                       "--refine-lines"])
-    assert args.refine_lines == "on-plane"  # the flag alone keeps its old meaning
+    assert args.refine_lines == "all"  # the flag alone: the on-plane lines as before, and fast's edges still
     scene = ["--dataset", "synthetic", "--root", str(synthetic_root), "--scene", "room-s3", "--out", str(tmp_path)]
     for bad in ("5", "a,b", "-1,5"):
         assert main(["map", *scene, f"--keyframes={bad}"]) == 2
