@@ -92,6 +92,33 @@ def test_keyframes_option_sets_the_mapping_keyframes(synthetic_root, tmp_path, c
     assert 3 <= n < 30
 
 
+def test_full_resolution_option_sets_the_plane_resolution(synthetic_root, tmp_path, capsys):
+    from argparse import Namespace
+
+    from localization.cli import _mapping_conf, build_parser
+    from lipmap.mapping.pipeline import get_conf
+    from lipmap.planes.optimize import PlaneOptConfig
+
+    def planes(**kw):
+        return PlaneOptConfig.preset(get_conf(_mapping_conf(Namespace(preset="fast", keyframes=None, **kw))).planes)
+
+    default = planes()
+    assert default.downscale == 0 and default.target_width == 320 and default.fine_iterations == 0
+    full = planes(full_resolution=-1)  # the flag alone
+    assert full.downscale == 1 and full.iterations == default.iterations and full.split == default.split
+    fine = planes(full_resolution=900)
+    assert fine.fine_iterations == 900 and fine.downscale == 0 and fine.iterations == default.iterations
+    parse = build_parser().parse_args
+    base = ["map", "--dataset", "synthetic", "--root", "r", "--scene", "s", "--out", "o"]
+    assert parse(base + ["--full-resolution"]).full_resolution == -1
+    assert parse(base + ["--full-resolution", "900"]).full_resolution == 900
+    assert parse(base).full_resolution is None
+    scene = ["--dataset", "synthetic", "--root", str(synthetic_root), "--scene", "room-s3", "--out", str(tmp_path)]
+    assert main(["map", *scene, "--full-resolution", "0"]) == 2
+    assert "--full-resolution takes a number of iterations > 0" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # refused before any work
+
+
 def test_eval_bad_line_rescue(tmp_path, capsys):
     assert main(["eval", "--dataset", "synthetic", "--out", str(tmp_path), "--line-rescue", "-1"]) == 2
     assert "--line-rescue takes a number of inliers >= 0" in capsys.readouterr().err

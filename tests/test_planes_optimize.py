@@ -189,3 +189,41 @@ def test_paper_preset_runs():
     assert hist["lambda"][0] < 300
     for t in planes.tensors():
         assert torch.isfinite(t).all()
+
+
+def test_fine_iterations_train_the_last_steps_at_full_resolution(synthetic_root):
+    """Coarse to fine: with ``downscale=2`` and ``fine_iterations=2`` the last 2 of 6 steps render (and hand the
+    line term) the views' own resolution, the first 4 half of it; prepared targets cannot do it, and it is a
+    no-op where the working resolution already is the views' own."""
+    from lipmap.datasets import load_scene
+    from lipmap.errors import InputError
+    from lipmap.planes.optimize import prepare_targets
+
+    views = load_scene("synthetic", synthetic_root, "room-s3").mapping[:3]
+    W, H = views[0].camera.width, views[0].camera.height
+    seen = []
+
+    def extra(view, planes, iteration, render, target):
+        assert tuple(target.depth.shape) == tuple(render.alpha.shape)
+        seen.append((iteration, tuple(render.alpha.shape), target.camera.width))
+        return None
+
+    conf = PlaneOptConfig.preset("fast", progress=False, downscale=2, epochs=0, iterations=6, fine_iterations=2)
+    optimize_planes(list(views), noisy_wall_planes(), conf, extra_loss=extra)
+    assert [s[0] for s in seen] == list(range(6))
+    assert [s[1] for s in seen] == [(H // 2, W // 2)] * 4 + [(H, W)] * 2
+    assert [s[2] for s in seen] == [W // 2] * 4 + [W] * 2
+
+    with pytest.raises(InputError, match="fine_iterations"):
+        optimize_planes(prepare_targets(_frames(views), conf), noisy_wall_planes(), conf)
+    seen.clear()
+    optimize_planes(list(views), noisy_wall_planes(), PlaneOptConfig.preset(
+        "fast", progress=False, downscale=1, epochs=0, iterations=3, fine_iterations=2), extra_loss=extra)
+    assert [s[1] for s in seen] == [(H, W)] * 3
+
+
+def _frames(views):
+    from lipmap.planes.init import LazyDepthFrames
+
+    frames = LazyDepthFrames(list(views))
+    return [frames[i] for i in range(len(frames))]

@@ -46,6 +46,9 @@ class PlaneOptConfig:
     cache_views: int = 256  # views whose training targets stay in memory (LRU); the rest are re-read from disk
     downscale: int = 1  # optimize at 1 / downscale of the view resolution; 0 = from target_width
     target_width: int = 160  # with downscale = 0: the integer factor that brings the width closest to this
+    # the last this many iterations of the budget train at the views' own resolution (coarse to fine): edges settle
+    # on full-resolution pixels at a fraction of a full-resolution run's cost; 0 = off
+    fine_iterations: int = 0
     lr_center: float = 1e-3
     lr_quat: float = 1e-3
     lr_radii: float = 1e-3
@@ -187,7 +190,8 @@ class TargetStore:
     def __init__(self, views, conf: PlaneOptConfig, device=None):
         from ..frames import LRU
 
-        self.frames = LazyDepthFrames(views)
+        self.views = list(views)
+        self.frames = LazyDepthFrames(self.views)
         self._lru = LRU(lambda i: view_target(self.frames[i], conf, device), conf.cache_views)
 
     def __len__(self) -> int:
@@ -576,6 +580,7 @@ def optimize_planes(
     params = _clean_start(planes, dev, on_restructure)
     opt = _make_optimizer(params, conf)
     sched = Schedule.of(conf, len(targets))
+    fine, fine_from = _fine_targets(targets, conf, sched, dev)
     rng = np.random.default_rng(conf.seed)
     hist = {k: [] for k in HISTORY_KEYS}
     bar = _progress_bar(conf, sched.max_iters)
@@ -586,7 +591,7 @@ def optimize_planes(
     stats = _EpochStats.zeros(len(params[0]), dev)
     for epoch in range(sched.n_epochs):
         for vi in rng.permutation(len(targets))[: sched.max_iters - it]:
-            total = _train_view(params, opt, targets[vi], it, sched, extra_loss, stats)
+            total = _train_view(params, opt, (fine if it >= fine_from else targets)[vi], it, sched, extra_loss, stats)
             it += 1
             visited[vi] = True
             if bar is not None:
@@ -607,6 +612,20 @@ def optimize_planes(
     if bar is not None:
         bar.close()
     return Planes(*(p.detach() for p in params)), hist
+
+
+def _fine_targets(targets, conf: PlaneOptConfig, sched: Schedule, dev):
+    """(full-resolution targets, first iteration that uses them) for ``conf.fine_iterations``; (None, never) when off
+    or when the working resolution already is the views' own."""
+    if conf.fine_iterations <= 0 or (conf.downscale or auto_downscale(targets[0].view.camera.width, conf.target_width)) <= 1:
+        return None, sched.max_iters
+    views = getattr(targets, "views", None)
+    if views is None:
+        raise InputError("fine_iterations needs the views (a TargetStore or a list of views), not prepared targets")
+    fine = TargetStore(views, replace(conf, downscale=1), device=dev)
+    if len(fine) != len(targets):
+        raise InputError(f"fine_iterations: {len(fine)} full-resolution targets for {len(targets)} views")
+    return fine, max(sched.max_iters - conf.fine_iterations, 0)
 
 
 def _progress_bar(conf: PlaneOptConfig, total: int):
