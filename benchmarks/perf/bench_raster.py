@@ -113,13 +113,14 @@ def _reset_peak_rss() -> bool:
         return False
 
 
-def run_one(args, res: str, K: int, device: str) -> dict:
+def training_step(res: str, K: int, device: str, lam: float, grow: float = 2.5, box: bool = False):
+    """``(step, source)``: one forward + backward of the renderer (L1 depth + normal loss against a flat target) at
+    ``res`` ("WxH") over ``K`` planes on ``device``; ``source`` says which planes (see the module docstring)."""
     from lipmap.planes import rasterize_planes
 
-    torch.set_num_threads(args.threads)
     W, H = (int(x) for x in res.split("x"))
-    if DATA.is_dir() and not args.box:
-        planes, T, intr = kitchen(K, args.grow)
+    if DATA.is_dir() and not box:
+        planes, T, intr = kitchen(K, grow)
         source = "redkitchen-init"
     else:
         planes, T, intr = box_room(K)
@@ -135,10 +136,18 @@ def run_one(args, res: str, K: int, device: str) -> dict:
     target_n[..., 2] = -1
 
     def step():
-        out = rasterize_planes(*params, T, intr, W, H, args.lam)
+        out = rasterize_planes(*params, T, intr, W, H, lam)
         loss = (out.depth - target_d).abs().mean() + (out.normal - target_n).abs().sum(-1).mean()
         loss.backward()
         return out
+
+    return step, source
+
+
+def run_one(args, res: str, K: int, device: str) -> dict:
+    torch.set_num_threads(args.threads)
+    step, source = training_step(res, K, device, args.lam, args.grow, args.box)
+    dev = torch.device(device)
 
     def sync():
         if dev.type == "cuda":

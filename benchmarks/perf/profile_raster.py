@@ -18,28 +18,10 @@ sys.path.insert(0, str(REPO / "benchmarks" / "perf"))
 sys.path.insert(0, str(REPO / "benchmarks"))
 import bench_raster as br  # noqa: E402
 
-from lipmap.planes import rasterize_planes  # noqa: E402
-
 if not torch.cuda.is_available():
     raise SystemExit("profile_raster.py profiles the CUDA renderer: no CUDA device here")
 for res, K in (("640x480", 10000), ("320x240", 2000)):
-    planes, T, intr = br.kitchen(K, 2.5)
-    W, H = (int(x) for x in res.split("x"))
-    s = W / 640.0
-    intr = tuple(float(x) * s for x in intr)
-    dev = torch.device("cuda")
-    planes = planes.to(dev)
-    T = torch.as_tensor(T, dtype=torch.float32, device=dev)
-    params = [t.clone().requires_grad_(True) for t in planes.tensors()]
-    td = torch.full((H, W), 2.0, device=dev)
-    tn = torch.zeros(H, W, 3, device=dev)
-    tn[..., 2] = -1
-
-    def step():
-        out = rasterize_planes(*params, T, intr, W, H, 1500.0)
-        loss = (out.depth - td).abs().mean() + (out.normal - tn).abs().sum(-1).mean()
-        loss.backward()
-
+    step, _ = br.training_step(res, K, "cuda", 1500.0)
     for _ in range(3):
         step()
     torch.cuda.synchronize()
