@@ -617,11 +617,13 @@ def optimize_planes(
 def _fine_targets(targets, conf: PlaneOptConfig, sched: Schedule, dev):
     """(full-resolution targets, first iteration that uses them) for ``conf.fine_iterations``; (None, never) when off
     or when the working resolution already is the views' own."""
-    if conf.fine_iterations <= 0 or (conf.downscale or auto_downscale(targets[0].view.camera.width, conf.target_width)) <= 1:
+    if conf.fine_iterations <= 0:
         return None, sched.max_iters
     views = getattr(targets, "views", None)
     if views is None:
         raise InputError("fine_iterations needs the views (a TargetStore or a list of views), not prepared targets")
+    if (conf.downscale or auto_downscale(views[0].camera.width, conf.target_width)) <= 1:
+        return None, sched.max_iters
     fine = TargetStore(views, replace(conf, downscale=1), device=dev)
     if len(fine) != len(targets):
         raise InputError(f"fine_iterations: {len(fine)} full-resolution targets for {len(targets)} views")
