@@ -277,7 +277,7 @@ def _add_mapping_args(p, method_default: str):
     p.add_argument("--full-resolution", nargs="?", const=-1, default=None, type=int, metavar="N",
                    help="lipmap: train the planes at the views' own resolution instead of the preset's (fast: half): "
                         "throughout (no value; what a GPU does at about the same cost), or only the last N iterations "
-                        "(coarse to fine; on a CPU N=900 adds ~80 s to the RedKitchen mini)")
+                        "(coarse to fine; fast: the last 900, ~80 s of the RedKitchen mini on 2 CPU cores; 0: none)")
     p.add_argument("--skip-bad-frames", action="store_true", help="skip unreadable mapping frames (default: stop with an error)")
     p.add_argument("--overwrite", action="store_true", help="remake the artifacts instead of reusing them")
 
@@ -289,8 +289,8 @@ def _full_resolution_planes(preset: str, n: int) -> dict:
 
     base = mapping_confs[preset].planes
     planes = dict(base) if isinstance(base, dict) else {"preset": base}
-    if n == 0 or n < -1:
-        raise InputError(f"--full-resolution takes a number of iterations > 0, or no value for all of them; got {n}")
+    if n < -1:
+        raise InputError(f"--full-resolution takes a number of iterations >= 0, or no value for all of them; got {n}")
     planes.update({"downscale": 1} if n < 0 else {"fine_iterations": n})
     return planes
 

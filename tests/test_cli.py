@@ -102,20 +102,22 @@ def test_full_resolution_option_sets_the_plane_resolution(synthetic_root, tmp_pa
     def planes(**kw):
         return PlaneOptConfig.preset(get_conf(_mapping_conf(Namespace(preset="fast", keyframes=None, **kw))).planes)
 
-    default = planes()
-    assert default.downscale == 0 and default.target_width == 320 and default.fine_iterations == 0
+    default = planes()  # half resolution, the last 900 iterations at full
+    assert default.downscale == 0 and default.target_width == 320 and default.fine_iterations == 900
     full = planes(full_resolution=-1)  # the flag alone
     assert full.downscale == 1 and full.iterations == default.iterations and full.split == default.split
-    fine = planes(full_resolution=900)
-    assert fine.fine_iterations == 900 and fine.downscale == 0 and fine.iterations == default.iterations
+    fine = planes(full_resolution=300)
+    assert fine.fine_iterations == 300 and fine.downscale == 0 and fine.iterations == default.iterations
+    coarse = planes(full_resolution=0)  # none at full resolution
+    assert coarse.fine_iterations == 0 and coarse.downscale == 0
     parse = build_parser().parse_args
     base = ["map", "--dataset", "synthetic", "--root", "r", "--scene", "s", "--out", "o"]
     assert parse(base + ["--full-resolution"]).full_resolution == -1
     assert parse(base + ["--full-resolution", "900"]).full_resolution == 900
     assert parse(base).full_resolution is None
     scene = ["--dataset", "synthetic", "--root", str(synthetic_root), "--scene", "room-s3", "--out", str(tmp_path)]
-    assert main(["map", *scene, "--full-resolution", "0"]) == 2
-    assert "--full-resolution takes a number of iterations > 0" in capsys.readouterr().err
+    assert main(["map", *scene, "--full-resolution", "-2"]) == 2
+    assert "--full-resolution takes a number of iterations >= 0" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # refused before any work
 
 
