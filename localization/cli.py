@@ -291,7 +291,7 @@ def _full_resolution_planes(preset: str, n: int) -> dict:
     planes = dict(base) if isinstance(base, dict) else {"preset": base}
     if n < -1:
         raise InputError(f"--full-resolution takes a number of iterations >= 0, or no value for all of them; got {n}")
-    planes.update({"downscale": 1} if n < 0 else {"fine_iterations": n})
+    planes.update({"downscale": 1} if n < 0 else {"fine_iterations": n, "fine_downscale": 1})
     return planes
 
 

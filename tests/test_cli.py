@@ -106,8 +106,10 @@ def test_full_resolution_option_sets_the_plane_resolution(synthetic_root, tmp_pa
     assert default.downscale == 0 and default.target_width == 320 and default.fine_iterations == 900
     full = planes(full_resolution=-1)  # the flag alone
     assert full.downscale == 1 and full.iterations == default.iterations and full.split == default.split
-    fine = planes(full_resolution=300)
-    assert fine.fine_iterations == 300 and fine.downscale == 0 and fine.iterations == default.iterations
+    assert default.fine_downscale == 0  # half the working downscale: the camera's own on 7-Scenes
+    fine = planes(full_resolution=300)  # the camera's own, whatever its size
+    assert fine.fine_iterations == 300 and fine.fine_downscale == 1 and fine.downscale == 0
+    assert fine.iterations == default.iterations
     coarse = planes(full_resolution=0)  # none at full resolution
     assert coarse.fine_iterations == 0 and coarse.downscale == 0
     parse = build_parser().parse_args

@@ -221,6 +221,14 @@ def test_fine_iterations_train_the_last_steps_at_full_resolution(synthetic_root)
         "fast", progress=False, downscale=1, epochs=0, iterations=3, fine_iterations=2), extra_loss=extra)
     assert [s[1] for s in seen] == [(H, W)] * 3
 
+    # from a quarter, the fine steps train at half the working downscale (bounded cost), or at the one asked for
+    for fine_ds, fine_shape in ((0, (H // 2, W // 2)), (1, (H, W))):
+        seen.clear()
+        optimize_planes(list(views), noisy_wall_planes(), PlaneOptConfig.preset(
+            "fast", progress=False, downscale=4, epochs=0, iterations=4, fine_iterations=2, fine_downscale=fine_ds),
+            extra_loss=extra)
+        assert [s[1] for s in seen] == [(H // 4, W // 4)] * 2 + [fine_shape] * 2
+
 
 def _frames(views):
     from lipmap.planes.init import LazyDepthFrames

@@ -46,9 +46,12 @@ class PlaneOptConfig:
     cache_views: int = 256  # views whose training targets stay in memory (LRU); the rest are re-read from disk
     downscale: int = 1  # optimize at 1 / downscale of the view resolution; 0 = from target_width
     target_width: int = 160  # with downscale = 0: the integer factor that brings the width closest to this
-    # the last this many iterations of the budget train at the views' own resolution (coarse to fine): edges settle
-    # on full-resolution pixels at a fraction of a full-resolution run's cost; 0 = off
+    # the last this many iterations of the budget train at a finer resolution (coarse to fine): edges settle on
+    # the camera's pixels at a fraction of a fine run's cost; 0 = off
     fine_iterations: int = 0
+    # their downscale; 0 = half the working one, at least 1 (7-Scenes: the camera's own 640x480), so that a larger
+    # camera costs those iterations 4x the pixels, not 16x; 1 = the views' own resolution
+    fine_downscale: int = 0
     lr_center: float = 1e-3
     lr_quat: float = 1e-3
     lr_radii: float = 1e-3
@@ -618,18 +621,20 @@ def optimize_planes(
 
 
 def _fine_targets(targets, conf: PlaneOptConfig, sched: Schedule, dev):
-    """(full-resolution targets, first iteration that uses them) for ``conf.fine_iterations``; (None, never) when off
-    or when the working resolution already is the views' own."""
+    """(finer targets, first iteration that uses them) for ``conf.fine_iterations`` at ``conf.fine_downscale``;
+    (None, never) when off or when that resolution is no finer than the working one."""
     if conf.fine_iterations <= 0:
         return None, sched.max_iters
     views = getattr(targets, "views", None)
     if views is None:
         raise InputError("fine_iterations needs the views (a TargetStore or a list of views), not prepared targets")
-    if (conf.downscale or auto_downscale(views[0].camera.width, conf.target_width)) <= 1:
+    ds = conf.downscale or auto_downscale(views[0].camera.width, conf.target_width)
+    fine_ds = conf.fine_downscale or max(ds // 2, 1)
+    if fine_ds >= ds:
         return None, sched.max_iters
-    fine = TargetStore(views, replace(conf, downscale=1), device=dev)
+    fine = TargetStore(views, replace(conf, downscale=fine_ds), device=dev)
     if len(fine) != len(targets):
-        raise InputError(f"fine_iterations: {len(fine)} full-resolution targets for {len(targets)} views")
+        raise InputError(f"fine_iterations: {len(fine)} finer targets for {len(targets)} views")
     return fine, max(sched.max_iters - conf.fine_iterations, 0)
 
 
