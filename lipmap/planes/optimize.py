@@ -128,8 +128,8 @@ def _fast_lines() -> PlaneOptConfig:
         split_grad_threshold=0.6,  # adds planes where lines pull; 0.2 shatters the planes
         restructure_every=50,  # the 50-view mini's epoch, where the threshold was chosen, for fewer views
         init=replace(fast.init, n_planes=6000),  # more edges to align with the detected lines
-        # the last quarter at the camera's resolution: edges settle on its pixels, which held-out queries see
-        # (SfM pGT, 5 matches: 32 % within 2 cm against 28; README "Training resolution"), for ~80 s on 2 cores
+        # the last quarter at twice the resolution (7-Scenes: the camera's): edges settle on the pixels held-out
+        # queries see (SfM pGT, 5 matches: 32 % within 2 cm against 28; README "Training resolution"), ~80 s on 2 cores
         fine_iterations=900,
     )
 
