@@ -62,11 +62,16 @@ def auto_downscale(width: int, target_width: int) -> int:
     return max(1, int(round(width / max(target_width, 1))))
 
 
+def working_downscale(downscale: int, width: int, target_width: int) -> int:
+    """``downscale``, or for 0 the :func:`auto_downscale` of ``width`` towards ``target_width``."""
+    return downscale or auto_downscale(width, target_width)
+
+
 def downscale_frames(frames: list, downscale: int, target_width: int = 160) -> list:
     """The same frames with depth resized to 1 / downscale (nearest sampling; 0 = auto, see :func:`auto_downscale`)."""
     out = []
     for f in frames:
-        ds = downscale or auto_downscale(f.camera.width, target_width)
+        ds = working_downscale(downscale, f.camera.width, target_width)
         if ds <= 1:
             out.append(f)
             continue
@@ -81,7 +86,7 @@ def _load_frame(v, downscale: int = 1, target_width: int = 160) -> Optional[Dept
         return None
     depth = v.load_depth()
     cam = v.camera
-    ds = downscale or auto_downscale(cam.width, target_width)
+    ds = working_downscale(downscale, cam.width, target_width)
     if ds > 1:
         cam = cam.scaled(1.0 / ds)
         depth = resize_nearest(depth, cam.width, cam.height)

@@ -27,7 +27,7 @@ from .. import logger
 from ..errors import InputError
 from ..normals import normals_from_depth
 from ..presets import resolve
-from .init import LazyDepthFrames, PlaneInitConfig, auto_downscale, init_planes, resize_nearest
+from .init import LazyDepthFrames, PlaneInitConfig, init_planes, resize_nearest, working_downscale
 from .io import export_planes_ply, save_planes
 from .primitives import MAX_HITS, Planes
 from .render import TILE_SIZE, RenderOutput, lambda_schedule, rasterize_planes
@@ -168,7 +168,7 @@ def view_target(frame, conf: PlaneOptConfig, device=None) -> ViewTarget:
     full-resolution depth (:func:`lipmap.normals.normals_from_depth`), then both maps are resized
     to the working resolution by nearest sampling.
     """
-    ds = conf.downscale or auto_downscale(frame.camera.width, conf.target_width)
+    ds = working_downscale(conf.downscale, frame.camera.width, conf.target_width)
     cam = frame.camera if ds <= 1 else frame.camera.scaled(1.0 / ds)
     normals = frame.view.load_normals() if getattr(frame.view, "normal_path", None) is not None else None
     if normals is None:
@@ -628,7 +628,7 @@ def _fine_targets(targets, conf: PlaneOptConfig, sched: Schedule, dev):
     views = getattr(targets, "views", None)
     if views is None:
         raise InputError("fine_iterations needs the views (a TargetStore or a list of views), not prepared targets")
-    ds = conf.downscale or auto_downscale(views[0].camera.width, conf.target_width)
+    ds = working_downscale(conf.downscale, views[0].camera.width, conf.target_width)
     fine_ds = conf.fine_downscale or max(ds // 2, 1)
     if fine_ds >= ds:
         return None, sched.max_iters
