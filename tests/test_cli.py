@@ -123,6 +123,30 @@ def test_full_resolution_option_sets_the_plane_resolution(synthetic_root, tmp_pa
     assert not any(tmp_path.iterdir())  # refused before any work
 
 
+def test_extract_gate_option_sets_the_extraction_thresholds(synthetic_root, tmp_path, capsys):
+    from argparse import Namespace
+
+    from localization.cli import _mapping_conf
+    from lipmap.mapping.pipeline import get_conf
+
+    def extract(**kw):
+        return get_conf(_mapping_conf(Namespace(preset=kw.pop("preset", "fast"), keyframes=None, **kw))).extract
+
+    default = extract()
+    assert (default.max_dist, default.max_angle) == (3.0, 0.03)
+    wide = extract(extract_gate="10,0.1")
+    assert (wide.max_dist, wide.max_angle) == (10.0, 0.1)
+    # only the gate changes: the rest of the preset's extraction (merging, tracks) stays
+    assert wide.merge == default.merge and wide.track_max_dist == default.track_max_dist
+    paper = extract(preset="paper", extract_gate="2,0.02")
+    assert (paper.max_dist, paper.max_angle, paper.dist_reduce) == (2.0, 0.02, "mean")
+    scene = ["--dataset", "synthetic", "--root", str(synthetic_root), "--scene", "room-s3", "--out", str(tmp_path)]
+    for bad, why in (("3", "takes PX,RAD"), ("x,0.1", "takes PX,RAD"), ("0,0.1", "PX > 0"), ("3,2", "RAD < pi/2")):
+        assert main(["map", *scene, "--extract-gate", bad]) == 2
+        assert why in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # refused before any work
+
+
 def test_eval_bad_line_rescue(tmp_path, capsys):
     assert main(["eval", "--dataset", "synthetic", "--out", str(tmp_path), "--line-rescue", "-1"]) == 2
     assert "--line-rescue takes a number of inliers >= 0" in capsys.readouterr().err
