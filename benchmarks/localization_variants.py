@@ -13,6 +13,7 @@ table and writes ``benchmarks/results/localization-variants-<dataset>-<scene>-<m
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from argparse import Namespace
 from dataclasses import replace
@@ -29,9 +30,26 @@ from localization.pipeline import BuiltinPoints, LocalizationConfig, localize_qu
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import results  # noqa: E402
+from mapping_variants import EXTRACTION_ONLY  # noqa: E402
 
 HEADER = ["variant", "overrides", "point-only: median cm / % at 1, 2, 5 cm", "point+line: same",
           "line matches / correct (precision)", "line stage ms"]
+
+
+def reuse_default_planes(scene, scene_dir: Path, conf: LocalizationConfig) -> None:
+    """A map whose settings differ from the default's only on the extraction side starts from the default map's planes
+    (copied when that map exists: their stamp says they are the same planes), as in ``mapping_variants.py``."""
+    from lipmap.mapping.pipeline import get_conf, map_variant_dir
+
+    def folder(mapping):
+        return map_variant_dir(scene_dir, scene, replace(get_conf(mapping), seed=conf.seed), "lipmap", None)
+
+    src, dst = folder(LocalizationConfig().mapping), folder(conf.mapping)
+    if src == dst or not (src / "planes.h5").exists() or (dst / "planes.h5").exists():
+        return
+    dst.mkdir(parents=True, exist_ok=True)
+    for f in ("planes.h5", "lines2d.h5"):
+        shutil.copy(src / f, dst / f)
 
 
 def variant_config(base: LocalizationConfig, over: dict) -> LocalizationConfig:
@@ -98,6 +116,8 @@ def main(argv=None):
     base = LocalizationConfig(max_point_matches=args.matches or None, map_method=args.method,
                               mapping=_mapping_conf(Namespace(preset=LocalizationConfig().mapping, keyframes=args.keyframes),
                                                     **json.loads(args.mapping or "{}")))
+    if args.mapping and args.method == "lipmap" and args.keyframes is None and set(json.loads(args.mapping)) <= EXTRACTION_ONLY:
+        reuse_default_planes(scene, scene_dir, base)
     points, linemap, lq, lines = eval_inputs(scene, scene_dir, base)
     seeds = [int(s) for s in args.match_seeds.split(",")] if args.matches else [0]
 
