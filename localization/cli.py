@@ -77,15 +77,22 @@ def cmd_info(args):
         print(f"  pose source: {s['pose_source']}   mapping camera extent {s['mapping_extent_m']} m")
 
 
+def _number_pair(text: str, usage: str) -> tuple:
+    """``A,B`` as two floats; ``usage`` ("--option takes ...") starts the error otherwise."""
+    try:
+        a, b = (float(x) for x in text.split(","))
+    except ValueError:
+        raise InputError(f"{usage}, got {text!r}") from None
+    return a, b
+
+
 def _max_line_step(text: str) -> tuple:
     if text.strip().lower() in ("off", "0"):
         return ()
-    try:
-        m, deg = (float(x) for x in text.split(","))
-    except ValueError:
-        m = deg = None
-    if m is None or not (m > 0 and deg > 0):
-        raise InputError(f"--max-line-step takes 'METRES,DEGREES' (both > 0, e.g. 0.3,5) or 'off', got {text!r}")
+    usage = "--max-line-step takes 'METRES,DEGREES' (both > 0, e.g. 0.3,5) or 'off'"
+    m, deg = _number_pair(text, usage)
+    if not (m > 0 and deg > 0):
+        raise InputError(f"{usage}, got {text!r}")
     return (m, deg)
 
 
@@ -290,10 +297,7 @@ def _add_mapping_args(p, method_default: str):
 
 def _extract_gate(text: str) -> dict:
     """``--extract-gate PX,RAD`` as overrides of the mapping preset's extraction settings."""
-    try:
-        px, rad = (float(x) for x in text.split(","))
-    except ValueError:
-        raise InputError(f"--extract-gate takes PX,RAD (e.g. 3,0.03), got {text!r}") from None
+    px, rad = _number_pair(text, "--extract-gate takes PX,RAD (e.g. 3,0.03)")
     if not (px > 0 and 0 < rad < math.pi / 2):
         raise InputError(f"--extract-gate needs PX > 0 and 0 < RAD < pi/2, got {text!r}")
     return {"max_dist": px, "max_angle": rad}
@@ -316,10 +320,7 @@ def _mapping_conf(args, **overrides):
     """The mapping settings the command line asks for: the preset name, or a dict of overrides of it."""
     if args.keyframes is not None:
         text = args.keyframes.strip()
-        try:
-            cm, deg = (0.0, 0.0) if text == "0" else (float(x) for x in text.split(","))
-        except ValueError:
-            raise InputError(f"--keyframes takes CM,DEG (e.g. 5,5) or 0, got {args.keyframes!r}") from None
+        cm, deg = (0.0, 0.0) if text == "0" else _number_pair(text, "--keyframes takes CM,DEG (e.g. 5,5) or 0")
         if not (cm >= 0 and deg >= 0):
             raise InputError(f"--keyframes thresholds must be >= 0, got {args.keyframes!r}")
         overrides["keyframes"] = {"min_translation": cm / 100.0, "min_rotation_deg": deg}
