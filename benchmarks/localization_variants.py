@@ -36,6 +36,11 @@ HEADER = ["variant", "overrides", "point-only: median cm / % at 1, 2, 5 cm", "po
           "line matches / correct (precision)", "line stage ms"]
 
 
+def extraction_only(mapping: dict) -> bool:
+    """Whether mapping overrides change only what is made from the planes (so the default map's planes serve)."""
+    return bool(mapping) and set(mapping) <= EXTRACTION_ONLY
+
+
 def reuse_default_planes(scene, scene_dir: Path, conf: LocalizationConfig) -> None:
     """A map whose settings differ from the default's only on the extraction side starts from the default map's planes
     (copied when that map exists: their stamp says they are the same planes), as in ``mapping_variants.py``."""
@@ -116,7 +121,7 @@ def main(argv=None):
     base = LocalizationConfig(max_point_matches=args.matches or None, map_method=args.method,
                               mapping=_mapping_conf(Namespace(preset=LocalizationConfig().mapping, keyframes=args.keyframes),
                                                     **json.loads(args.mapping or "{}")))
-    if args.mapping and args.method == "lipmap" and args.keyframes is None and set(json.loads(args.mapping)) <= EXTRACTION_ONLY:
+    if args.method == "lipmap" and args.keyframes is None and extraction_only(json.loads(args.mapping or "{}")):
         reuse_default_planes(scene, scene_dir, base)
     points, linemap, lq, lines = eval_inputs(scene, scene_dir, base)
     seeds = [int(s) for s in args.match_seeds.split(",")] if args.matches else [0]
