@@ -41,15 +41,18 @@ def extraction_only(mapping: dict) -> bool:
     return bool(mapping) and set(mapping) <= EXTRACTION_ONLY
 
 
+def map_folder(scene, scene_dir: Path, mapping, seed: int) -> Path:
+    """The folder of the LiP-Map map that ``mapping`` (a preset name or overrides) builds, as ``lipmap-loc eval``'s."""
+    from lipmap.mapping.pipeline import get_conf, map_variant_dir
+
+    return map_variant_dir(scene_dir, scene, replace(get_conf(mapping), seed=seed), "lipmap", None)
+
+
 def reuse_default_planes(scene, scene_dir: Path, conf: LocalizationConfig) -> None:
     """A map whose settings differ from the default's only on the extraction side starts from the default map's planes
     (copied when that map exists: their stamp says they are the same planes), as in ``mapping_variants.py``."""
-    from lipmap.mapping.pipeline import get_conf, map_variant_dir
-
-    def folder(mapping):
-        return map_variant_dir(scene_dir, scene, replace(get_conf(mapping), seed=conf.seed), "lipmap", None)
-
-    src, dst = folder(LocalizationConfig().mapping), folder(conf.mapping)
+    src = map_folder(scene, scene_dir, LocalizationConfig().mapping, conf.seed)
+    dst = map_folder(scene, scene_dir, conf.mapping, conf.seed)
     if src == dst or not (src / "planes.h5").exists() or (dst / "planes.h5").exists():
         return
     dst.mkdir(parents=True, exist_ok=True)

@@ -15,11 +15,7 @@ def _conf(mapping: dict):
 
 
 def _folder(scene, scene_dir, conf):
-    from dataclasses import replace
-
-    from lipmap.mapping.pipeline import get_conf, map_variant_dir
-
-    return map_variant_dir(scene_dir, scene, replace(get_conf(conf.mapping), seed=conf.seed), "lipmap", None)
+    return variants.map_folder(scene, scene_dir, conf.mapping, conf.seed)
 
 
 def test_extraction_only_variant_starts_from_the_default_planes(synthetic_root, tmp_path):
