@@ -4,7 +4,7 @@ float come from.
     python benchmarks/edge_depth.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
         --scene redkitchen --out OUT [--tag TAG] NAME=MAP_DIR [NAME2=MAP_DIR2 ...]
 
-Each MAP_DIR holds a lipmap ``linemap.h5`` and its ``planes.h5``. Per map: the plane edges' median |depth - sensor
+Each MAP_DIR holds a lipmap ``linemap.h5`` (whose ``planes.h5`` it names). Per map: the plane edges' median |depth - sensor
 depth| over their tracked views (:func:`lipmap.mapping.extract.depth_residuals`, the nearer side of a depth step
 counts) in three bins, and for the edges more than 30 cm off: how far the interior of their planes is from the
 sensor depth (signed: negative = in front of the surface), how far they are from the camera, and how many of
@@ -25,7 +25,8 @@ from lipmap import geometry as geo
 from lipmap.datasets import load_scene
 from lipmap.frames import depth_maps
 from lipmap.linemap import LineMap
-from lipmap.mapping.extract import _depth_pixels, depth_residuals
+from lipmap.mapping.depth_lookup import depth_pixels
+from lipmap.mapping.extract import depth_residuals
 from lipmap.mapping.keyframes import KeyframeConfig, keyframe_views
 from lipmap.planes.io import load_planes
 
@@ -59,7 +60,7 @@ def _signed_off(points, views, vis, depth) -> np.ndarray:
         v = views[vi]
         d = depth[v.name]
         uv, z = geo.project_points(points, v.cam_from_world, v.camera)
-        r, c, ok = _depth_pixels(uv, z, v.camera, d.shape)
+        r, c, ok = depth_pixels(uv, z, v.camera, d.shape)
         dd = d[r[ok], c[ok]]
         out.append((z[ok] - dd)[dd > 0])
     return np.concatenate(out) if out else np.zeros(0)
@@ -69,7 +70,7 @@ def analyse(scene, map_dir: Path) -> dict:
     import torch
 
     lm = LineMap.load(map_dir / "linemap.h5")
-    p = load_planes(map_dir / "planes.h5", dtype=torch.float64)
+    p = load_planes(map_dir / lm.metadata.get("planes_file", "planes.h5"), dtype=torch.float64)  # eval: shared planes
     planes = {"R": p.rotation().numpy(), "center": p.center.numpy(), "radii": p.radii_clamped().numpy()}
     views = _views(scene, lm)
     index = {v.name: i for i, v in enumerate(views)}

@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from .. import geometry as geo
 from .assign import PlaneRaycaster, assign_lines, corner_edges
+from .depth_lookup import depth_pixels, nearest_depth_residual
 
 
 @dataclass
@@ -172,37 +173,6 @@ def _finish(lines, obs_line, obs, edge_line, conf, allow_edge_conflicts=False):
     return lines[keep], new_id[obs_line], edge_line
 
 
-def _depth_pixels(uv: np.ndarray, z: np.ndarray, camera, depth_shape) -> tuple:
-    """(row, col, inside) of projections ``uv`` (camera pixels) in a depth map of ``depth_shape``,
-    which may have another resolution than the camera (indices scale, the map is not resampled)."""
-    H, W = depth_shape
-    sx, sy = W / camera.width, H / camera.height
-    col = np.floor(uv[:, 0] * sx).astype(int)
-    row = np.floor(uv[:, 1] * sy).astype(int)
-    inside = (z > 0) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
-    return np.clip(row, 0, H - 1), np.clip(col, 0, W - 1), inside
-
-
-def depth_window(row: np.ndarray, col: np.ndarray, shape) -> np.ndarray:
-    """Flat indices :math:`(N, 9)` of the 3x3 pixels around (row, col) in a map of ``shape`` (H, W), clamped at
-    the border: build once for pixels that stay put (a line's region), gather from each depth map."""
-    H, W = shape
-    return np.stack([np.clip(row + dy, 0, H - 1) * W + np.clip(col + dx, 0, W - 1)
-                     for dy in (-1, 0, 1) for dx in (-1, 0, 1)], 1)
-
-
-def nearest_depth_residual(depth: np.ndarray, row: np.ndarray, col: np.ndarray, z: np.ndarray,
-                           window: np.ndarray | None = None) -> np.ndarray:
-    """Smallest |z - depth| over the 3x3 pixels around (row, col) of a depth map (0 = invalid); inf where none of
-    them has depth. At a depth step one side agrees with a point on the step's edge. ``window``: the pixels'
-    :func:`depth_window`, when the caller keeps it (``row``/``col`` are then unused)."""
-    if window is None:
-        window = depth_window(row, col, depth.shape)
-    d = depth.reshape(-1)[window]
-    res = np.where(d > 0, np.abs(d - np.asarray(z)[:, None]), np.inf)
-    return res.min(1) if len(res) else np.full(0, np.inf)
-
-
 def visible_mask(points_world: np.ndarray, view, depth: np.ndarray | None, tol: float) -> np.ndarray:
     """Which points (N, 3) are in view and not occluded according to the view's depth map (0: unknown)."""
     uv, z = geo.project_points(points_world, view.cam_from_world, view.camera)
@@ -210,7 +180,7 @@ def visible_mask(points_world: np.ndarray, view, depth: np.ndarray | None, tol: 
     inside = (z > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
     if depth is None:
         return inside
-    row, col, _ = _depth_pixels(uv, z, view.camera, depth.shape)
+    row, col, _ = depth_pixels(uv, z, view.camera, depth.shape)
     d = depth[row, col]
     return inside & ((d <= 0) | (z <= d * (1 + tol) + 0.02))
 
@@ -242,7 +212,7 @@ def depth_residuals(lines: np.ndarray, tracks: np.ndarray, views, depth_by_view:
             continue
         ids = pairs[pairs[:, 1] == vi, 0]
         uv, z = geo.project_points(samples[ids].reshape(-1, 3), v.cam_from_world, v.camera)
-        row, col, inside = _depth_pixels(uv, z, v.camera, depth.shape)
+        row, col, inside = depth_pixels(uv, z, v.camera, depth.shape)
         best = np.where(inside, nearest_depth_residual(depth, row, col, z), np.inf).reshape(len(ids), n)
         for li, r in zip(ids, best):
             per_line[li].append(r[np.isfinite(r)])

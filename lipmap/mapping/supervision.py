@@ -11,7 +11,7 @@ import torch
 
 from ..frames import DEFAULT_CAPACITY, LRU
 from .assign import best_edges, first_hit_torch, line_regions, pixel_rays_camera, pixel_rays_world
-from .extract import depth_window, nearest_depth_residual
+from .depth_lookup import depth_window, nearest_depth_residual
 from .losses import line_loss
 
 
