@@ -6,14 +6,14 @@
 
 The map, point map and query lines come from a ``lipmap-loc eval`` run into OUT with the default settings (built
 there when missing). Each variant then localizes every query in memory, without journals, for every draw of the
-point budget, and the figures pool the draws (as ``localization_table.py``). Overrides are JSON objects of
+point budget, and the figures pool the draws (as ``localization_table.py``). A ``--mapping`` override that changes
+only what is made from the planes (extraction, tracks, on-plane lines) reuses the default map's planes, as ``eval`` does. Overrides are JSON objects of
 ``LocalizationConfig`` fields; ``line_query`` and ``point_line_pose`` take dicts of their own fields. Prints a
 table and writes ``benchmarks/results/localization-variants-<dataset>-<scene>-<method>-<pose source>-<N>.json``.
 """
 from __future__ import annotations
 
 import json
-import shutil
 import sys
 from argparse import Namespace
 from dataclasses import replace
@@ -30,34 +30,9 @@ from localization.pipeline import BuiltinPoints, LocalizationConfig, localize_qu
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import results  # noqa: E402
-from mapping_variants import EXTRACTION_ONLY  # noqa: E402
 
 HEADER = ["variant", "overrides", "point-only: median cm / % at 1, 2, 5 cm", "point+line: same",
           "line matches / correct (precision)", "line stage ms"]
-
-
-def extraction_only(mapping: dict) -> bool:
-    """Whether mapping overrides change only what is made from the planes (so the default map's planes serve)."""
-    return bool(mapping) and set(mapping) <= EXTRACTION_ONLY
-
-
-def map_folder(scene, scene_dir: Path, mapping, seed: int) -> Path:
-    """The folder of the LiP-Map map that ``mapping`` (a preset name or overrides) builds, as ``lipmap-loc eval``'s."""
-    from lipmap.mapping.pipeline import get_conf, map_variant_dir
-
-    return map_variant_dir(scene_dir, scene, replace(get_conf(mapping), seed=seed), "lipmap", None)
-
-
-def reuse_default_planes(scene, scene_dir: Path, conf: LocalizationConfig) -> None:
-    """A map whose settings differ from the default's only on the extraction side starts from the default map's planes
-    (copied when that map exists: their stamp says they are the same planes), as in ``mapping_variants.py``."""
-    src = map_folder(scene, scene_dir, LocalizationConfig().mapping, conf.seed)
-    dst = map_folder(scene, scene_dir, conf.mapping, conf.seed)
-    if src == dst or not (src / "planes.h5").exists() or (dst / "planes.h5").exists():
-        return
-    dst.mkdir(parents=True, exist_ok=True)
-    for f in ("planes.h5", "lines2d.h5"):
-        shutil.copy(src / f, dst / f)
 
 
 def variant_config(base: LocalizationConfig, over: dict) -> LocalizationConfig:
@@ -124,8 +99,6 @@ def main(argv=None):
     base = LocalizationConfig(max_point_matches=args.matches or None, map_method=args.method,
                               mapping=_mapping_conf(Namespace(preset=LocalizationConfig().mapping, keyframes=args.keyframes),
                                                     **json.loads(args.mapping or "{}")))
-    if args.method == "lipmap" and args.keyframes is None and extraction_only(json.loads(args.mapping or "{}")):
-        reuse_default_planes(scene, scene_dir, base)
     points, linemap, lq, lines = eval_inputs(scene, scene_dir, base)
     seeds = [int(s) for s in args.match_seeds.split(",")] if args.matches else [0]
 

@@ -3,16 +3,15 @@
     python benchmarks/mapping_variants.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
         --scene redkitchen --out OUT [--preset fast] [--base NAME] [--tag TAG] NAME='{"line_weight": 1.0}' NAME2='{...}' ...
 
-Each variant is mapped into OUT/<NAME> (reused when a map made with the same settings is there). A variant that
-differs from ``--base`` only in extraction-side settings (``extract``, ``plane_depth_tol``, ``on_plane_lines``,
-``lift``, ``refine``) starts from the planes of ``--base`` (copied: their stamp says they are the same planes), so it costs seconds, not a
-plane optimization. Prints a table (full map and plane edges alone: F@5cm, R@50mm, images per line;
+Each variant is mapped into OUT/<NAME> (reused when a map made with the same settings is there), and its planes into
+OUT/planes-<preset>-<digest>: variants whose plane optimization is the same (by its stamp: settings and the code that
+shapes planes) share one, so a variant that changes only extraction, tracks or on-plane lines costs seconds.
+Prints a table (full map and plane edges alone: F@5cm, R@50mm, images per line;
 plane count and depth error) and writes it to ``benchmarks/results/mapping-variants-<dataset>-<scene>.json``.
 """
 from __future__ import annotations
 
 import json
-import shutil
 import sys
 from pathlib import Path
 
@@ -28,7 +27,6 @@ from lipmap.planes.io import load_planes_meta
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import results  # noqa: E402
 
-EXTRACTION_ONLY = {"extract", "plane_depth_tol", "on_plane_lines", "lift", "refine"}
 HEADER = ["variant", "overrides", "lines", "F@5cm", "R@50mm", "edge lines", "edges F@5cm", "edges R@50mm",
           "images per line: median / mean (edges)", "planes", "plane depth error median / > 5 cm", "plane optimization"]
 
@@ -52,7 +50,8 @@ def _metrics(lm, gt) -> dict:
 def main(argv=None):
     ap = results.scene_parser(__doc__)
     ap.add_argument("--preset", default="fast")
-    ap.add_argument("--base", default=None, help="the variant whose planes extraction-only variants reuse")
+    ap.add_argument("--base", default=None, help="ignored (kept so that recorded commands run): variants share "
+                    "planes through their stamp")
     ap.add_argument("--tag", default="", help="suffix of the results file, so that another question keeps its own table")
     ap.add_argument("variants", nargs="+", help="NAME=JSON overrides of the preset ('{}' for the preset itself)")
     args = ap.parse_args(argv)
@@ -60,24 +59,16 @@ def main(argv=None):
     gt = load_ground_truth(scene_ground_truth(scene))
     rows, data = [], {}
     specs = [(spec.partition("=")[0], json.loads(spec.partition("=")[2] or "{}")) for spec in args.variants]
-    base_over = dict(specs).get(args.base, {})
-
-    def plane_side(over):
-        return {k: v for k, v in over.items() if k not in EXTRACTION_ONLY}
-
+    seen_planes = set()
     for name, over in specs:
-        out = args.out / name
-        # same planes as the base: the overrides differ from the base's only in extraction-side settings
-        reuses = bool(args.base) and name != args.base and plane_side(over) == plane_side(base_over)
-        if reuses and not (out / "planes.h5").exists():
-            out.mkdir(parents=True, exist_ok=True)
-            for f in ("planes.h5", "lines2d.h5"):
-                shutil.copy(args.out / args.base / f, out / f)
-        lm = LineMap.load(map_scene(scene, out, _conf(args.preset, over), "lipmap"))
+        lm = LineMap.load(map_scene(scene, args.out / name, _conf(args.preset, over), "lipmap", planes_root=args.out))
+        planes_h5 = (args.out / name / lm.metadata["planes_file"]).resolve()
+        reuses = planes_h5 in seen_planes  # another variant of this run made (or reused) the same planes
+        seen_planes.add(planes_h5)
         full, edges = _metrics(lm, gt), _metrics(lm.subset(edge_line_mask(lm)), gt)
         ps = lm.metadata.get("plane_stats", {})
         # the plane optimization's own time (planes.h5), so that a variant reusing planes still shows it
-        t = load_planes_meta(out / "planes.h5").get("history", {}).get("total_seconds")
+        t = load_planes_meta(planes_h5).get("history", {}).get("total_seconds")
         data[name] = {"overrides": over, "full": full, "edges": edges, "plane_stats": ps, "timings": lm.metadata.get("timings")}
         rows.append([name, f"`{json.dumps(over)}`" if over else f"preset `{args.preset}`", full["n"], f"{full['f']:.3f}",
                      f"{full['r50']:.0f}", edges["n"], f"{edges['f']:.3f}", f"{edges['r50']:.0f}",

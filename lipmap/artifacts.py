@@ -89,15 +89,28 @@ MAPPING_CODE = ("mapping", "planes", "datasets", "lines2d.py", "lift.py", "linem
                 "frames.py", "imageio.py", "poses.py", "scene.py", "presets.py")
 
 
+# the part of it that shapes planes.h5: the plane optimization, the line term and what they import, and the code that
+# reads their inputs (scenes, frames, depth, 2D lines). tests/test_artifacts.py checks that it holds every lipmap
+# module the plane step imports, so that a plane dependency left out cannot let stale planes be reused
+PLANES_CODE = ("planes", "mapping/joint.py", "mapping/supervision.py", "mapping/assign.py", "mapping/losses.py",
+               "mapping/depth_lookup.py", "mapping/keyframes.py", "datasets", "lines2d.py", "geometry.py", "normals.py",
+               "frames.py", "imageio.py", "poses.py", "scene.py", "presets.py")
+
+
+def _covered(rel: Path, only: tuple) -> bool:
+    """Whether ``rel`` (a path inside a package) is one of, or lies in one of, the entries ``only``."""
+    return any(rel.parts[: len(Path(e).parts)] == Path(e).parts for e in only)
+
+
 def source_digest(packages, only: Optional[tuple] = None) -> str:
-    """Digest of the ``.py`` files (relative path and bytes) of ``packages`` (folders), restricted to the top-level
-    entries ``only`` (sub-folder or file names) when given."""
+    """Digest of the ``.py`` files (relative path and bytes) of ``packages`` (folders), restricted to the entries
+    ``only`` (folders or files, relative to the package: ``"planes"``, ``"mapping/joint.py"``) when given."""
     h = hashlib.sha256()
     for pkg in packages:
         pkg = Path(pkg)
         for f in sorted(pkg.rglob("*.py")):
             rel = f.relative_to(pkg)
-            if only is not None and rel.parts[0] not in only:
+            if only is not None and not _covered(rel, only):
                 continue
             h.update(f"{pkg.name}/{rel.as_posix()}".encode())
             h.update(f.read_bytes())
@@ -107,6 +120,11 @@ def source_digest(packages, only: Optional[tuple] = None) -> str:
 def mapping_code_digest() -> str:
     """:func:`source_digest` of the ``lipmap`` modules in :data:`MAPPING_CODE`."""
     return source_digest([Path(__file__).parent], MAPPING_CODE)
+
+
+def planes_code_digest() -> str:
+    """:func:`source_digest` of the ``lipmap`` modules in :data:`PLANES_CODE`."""
+    return source_digest([Path(__file__).parent], PLANES_CODE)
 
 
 @dataclass(frozen=True)

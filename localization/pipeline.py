@@ -4,7 +4,9 @@ per-query results go to a journal so an interrupted run resumes where it stopped
 
     OUT/<dataset>/<scene>/
         map-<method>-<preset>-<digest>/         the line map of one mapping variant (lipmap.mapping.pipeline):
-                                                linemap.h5, lines2d.h5, planes.h5, PLYs, renders
+                                                linemap.h5, lines2d.h5, linemap.ply, renders
+        planes-<preset>-<digest>/               planes.h5, planes.ply: one plane optimization, shared by the map
+                                                variants that differ only after it (lipmap.mapping.joint)
         points-<preset>-<digest>/               SIFT features, pairs, matches, sfm model (built-in points)
         lines2d_query-<digest>.h5               2D lines of the queries (the mapping's detector)
         queries-<digest>.jsonl                  per-query journal of one configuration (resume)
@@ -532,7 +534,9 @@ def scene_linemap(scene, out_dir: Path, conf: LocalizationConfig, lines_source=N
 
     mconf = replace(map_conf(conf.mapping), seed=conf.seed)
     map_dir = map_variant_dir(out_dir, scene, mconf, conf.map_method, lines_source)
-    path = map_scene(scene, map_dir, mconf, conf.map_method, lines_source, overwrite, checkpoint=checkpoint)
+    # the planes in a folder of their own: map variants that differ only after the plane optimization share them
+    path = map_scene(scene, map_dir, mconf, conf.map_method, lines_source, overwrite, checkpoint=checkpoint,
+                     planes_root=out_dir)
     linemap = LineMap.load(path)
     info = {"method": conf.map_method, "preset": mconf.preset, "path": _rel(path, out_dir), "n_lines": len(linemap),
             "digest": mapping_stamp(scene, mconf, conf.map_method, lines_source).digest}

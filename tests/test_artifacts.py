@@ -97,6 +97,75 @@ def test_source_digest_follows_the_code_it_covers_only(tmp_path):
     assert source_digest([pkg], only) != d0
 
 
+def test_source_digest_entries_may_name_files_in_folders(tmp_path):
+    from lipmap.artifacts import source_digest
+
+    pkg = tmp_path / "pkg"
+    (pkg / "sub").mkdir(parents=True)
+    for rel in ("sub/b.py", "sub/c.py", "subway.py"):
+        (pkg / rel).write_text("X = 1\n")
+    d0 = source_digest([pkg], ("sub/b.py",))
+    (pkg / "sub" / "c.py").write_text("X = 2\n")
+    (pkg / "subway.py").write_text("X = 2\n")
+    assert source_digest([pkg], ("sub/b.py",)) == d0
+    (pkg / "sub" / "b.py").write_text("X = 2\n")
+    assert source_digest([pkg], ("sub/b.py",)) != d0
+
+
+def _lipmap_imports(path, root):
+    """The lipmap modules (files) that ``path`` imports anywhere in it, with the packages' ``__init__.py`` on the way."""
+    import ast
+
+    parts = path.relative_to(root.parent).with_suffix("").parts
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = parts[: len(parts) - node.level]
+                mod = base + (tuple(node.module.split(".")) if node.module else ())
+            elif node.module and node.module.split(".")[0] == "lipmap":
+                mod = tuple(node.module.split("."))
+            else:
+                continue
+            names = [mod] + [mod + (a.name,) for a in node.names]
+        elif isinstance(node, ast.Import):
+            names = [tuple(a.name.split(".")) for a in node.names if a.name.split(".")[0] == "lipmap"]
+        else:
+            continue
+        for m in names:
+            for k in range(1, len(m) + 1):
+                for f in (root.parent.joinpath(*m[:k]).with_suffix(".py"), root.parent.joinpath(*m[:k], "__init__.py")):
+                    if f.exists():
+                        found.add(f)
+    return found
+
+
+def test_the_planes_code_holds_everything_the_plane_step_imports():
+    """planes.h5 is stamped with the digest of PLANES_CODE only: a lipmap module the plane step imports (at any depth,
+    in any function) but PLANES_CODE leaves out would let planes made by other code be reused."""
+    from pathlib import Path
+
+    import lipmap
+    from lipmap.artifacts import MAPPING_CODE, PLANES_CODE, _covered
+
+    root = Path(lipmap.__file__).parent
+    assert all((root / name).exists() for name in PLANES_CODE)
+    todo = [root / "planes" / "optimize.py", root / "mapping" / "joint.py"]
+    seen = set()
+    while todo:
+        f = todo.pop()
+        if f not in seen:
+            seen.add(f)
+            todo.extend(_lipmap_imports(f, root))
+    assert root / "mapping" / "supervision.py" in seen and root / "geometry.py" in seen  # the walk follows imports
+    plumbing = {"__init__.py", "errors.py", "artifacts.py", "mapping/__init__.py"}  # no effect on the numbers
+    missing = [f.relative_to(root).as_posix() for f in seen
+               if f.relative_to(root).as_posix() not in plumbing and not _covered(f.relative_to(root), PLANES_CODE)]
+    assert not missing, f"the plane step imports {missing}, which PLANES_CODE leaves out"
+    # and what makes the planes also makes the map
+    assert all(_covered(Path(e), MAPPING_CODE) for e in PLANES_CODE)
+
+
 def test_the_mapping_code_names_modules_that_exist():
     from pathlib import Path
 

@@ -204,3 +204,37 @@ def test_a_journal_is_not_resumed_by_other_code(mini_root, tmp_path, monkeypatch
     run_eval("synthetic", mini_root, ["room-s1"], out, CONF)
     journals = set((out / "synthetic" / "room-s1").glob("queries-*.jsonl"))
     assert len(journals) == 2 and len((journals - first).pop().read_text().splitlines()) == 6
+
+
+def test_maps_that_differ_after_the_planes_share_them(mini_root, tmp_path, monkeypatch):
+    """With ``planes_root``, planes.h5 lives in a folder keyed by its own stamp: a map with other extraction settings,
+    or made after a change to code the planes do not depend on, is remade from the same planes (not re-optimized);
+    other plane settings, or a change to plane code, give planes of their own."""
+    import lipmap.artifacts as art
+    from lipmap.datasets import load_scene
+    from lipmap.mapping.pipeline import map_scene
+
+    scene = load_scene("synthetic", mini_root, "room-s1")
+    a = map_scene(scene, tmp_path / "a", "quick", "lipmap", planes_root=tmp_path)
+    planes = sorted(tmp_path.glob("planes-quick-*/planes.h5"))
+    assert len(planes) == 1 and not (tmp_path / "a" / "planes.h5").exists()
+    made = planes[0].stat().st_mtime_ns
+
+    def lines(path):
+        from lipmap.linemap import LineMap
+
+        lm = LineMap.load(path)
+        assert (path.parent / lm.metadata["planes_file"]).resolve() == planes[0].resolve()
+        return len(lm)
+
+    wide = map_scene(scene, tmp_path / "b", {"preset": "quick", "extract": {"max_dist": 6.0, "max_angle": 0.06}}, "lipmap",
+                     planes_root=tmp_path)
+    monkeypatch.setattr(art, "MAPPING_CODE", art.MAPPING_CODE + ("viz.py",))  # as if viz.py now made maps
+    again = map_scene(scene, tmp_path / "c", "quick", "lipmap", planes_root=tmp_path)
+    assert sorted(tmp_path.glob("planes-quick-*/planes.h5")) == planes and planes[0].stat().st_mtime_ns == made
+    assert lines(again) == lines(a) and lines(wide) >= lines(a)  # a wider gate keeps at least the same edges
+
+    monkeypatch.setattr(art, "PLANES_CODE", art.PLANES_CODE + ("viz.py",))  # as if the planes now depended on it
+    map_scene(scene, tmp_path / "d", "quick", "lipmap", planes_root=tmp_path)
+    map_scene(scene, tmp_path / "e", {"preset": "quick", "line_weight": 1.0}, "lipmap", planes_root=tmp_path)
+    assert len(list(tmp_path.glob("planes-quick-*/planes.h5"))) == 3

@@ -9,6 +9,7 @@ Method ``lift`` back-projects each 2D line with depth instead (the paper's Fig. 
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -22,6 +23,7 @@ from ..errors import InputError
 from ..linemap import edge_line_mask  # noqa: F401 - its home is the artifact; kept importable from here
 from ..presets import resolve
 from .extract import ExtractConfig, add_tracks, depth_residuals, extract_observations, merge_edges
+from .joint import fit_planes_with_lines, line_supervision, lines_settings, planes_variant_dir  # noqa: F401 - importable from here
 from .keyframes import KeyframeConfig, keyframe_views
 from .refine import RefineConfig, refine_linemap
 
@@ -78,15 +80,6 @@ def get_conf(conf=None) -> MappingConfig:
     return resolve(conf, confs, "mapping", default="fast")
 
 
-def lines_settings(conf: MappingConfig, lines_source=None) -> dict:
-    """What the 2D lines of a map depend on: the detector preset's settings, or the imported source."""
-    if lines_source is not None:
-        return {"import": str(Path(lines_source).resolve())}
-    from ..lines2d import get_conf as lines_conf
-
-    return {"detector": asdict(lines_conf(conf.lines))}
-
-
 def mapping_stamp(scene, conf=None, method: str = "lipmap", lines_source=None) -> Stamp:
     """The :class:`~lipmap.artifacts.Stamp` of the ``linemap.h5`` that :func:`map_scene` would build."""
     conf = get_conf(conf)
@@ -125,30 +118,6 @@ def detect_or_import_lines(views, out_dir: Path, conf: MappingConfig, lines_sour
     if lines_source is not None:
         return import_lines(views, lines_source, out, overwrite=overwrite)
     return detect_lines(views, out, conf.lines, overwrite=overwrite)
-
-
-def line_supervision(lines_by_view: dict, conf: MappingConfig):
-    """The line term of the joint optimization with ``conf``'s settings."""
-    from .supervision import LineSupervision
-
-    return LineSupervision(lines_by_view, weight=conf.line_weight, pixels_per_line=conf.pixels_per_line,
-                           use_group=conf.group_loss, seed=conf.seed, endpoint_weight=conf.endpoint_weight,
-                           robust_scale=conf.robust_scale, max_assign_frac=conf.max_assign_frac,
-                           euc_inside_only=conf.euc_inside_only, depth_gate=conf.line_depth_gate)
-
-
-def fit_planes_with_lines(scene, lines_by_view: dict, out_dir: Path, conf: MappingConfig, lines_source=None,
-                          overwrite=False):
-    """Joint line-plane optimization (:func:`lipmap.planes.optimize.fit_planes` with the line term);
-    writes or reuses ``planes.h5`` and ``planes.ply``. Returns Planes."""
-    from ..planes import io as pio
-    from ..planes.optimize import PlaneOptConfig, fit_planes
-
-    pconf = PlaneOptConfig.preset(conf.planes, seed=conf.seed)
-    sup = line_supervision(lines_by_view, conf)
-    path = fit_planes(scene, out_dir, pconf, extra_loss=sup, overwrite=overwrite,
-                      stamp_extra={"line_term": sup.settings(), "lines": lines_settings(conf, lines_source)})
-    return pio.load_planes(path)
 
 
 def lipmap_linemap(scene, planes, lines_by_view: dict, conf: MappingConfig, depth_by_view=None):
@@ -234,13 +203,15 @@ def _add_on_plane_lines(edges, scene, corners, lines_by_view: dict, conf: Mappin
 
 
 def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=None, overwrite: bool = False,
-              checkpoint: Optional[Callable[[str], None]] = None) -> Path:
+              checkpoint: Optional[Callable[[str], None]] = None, planes_root=None) -> Path:
     """Build the line map of ``scene`` in ``out_dir``; returns the path of ``linemap.h5``.
 
     Reuses ``out_dir/linemap.h5`` when the same settings and inputs made it; stops with
     :class:`~lipmap.artifacts.StaleArtifactError` naming both settings when others did (a pipeline that
     keeps several variants maps each into :func:`map_variant_dir`). ``checkpoint(event)`` is called after
     each artifact is written (``"lines2d"``, ``"planes"``, ``"linemap"``): progress, or fault injection in tests.
+    ``planes_root``: keep ``planes.h5`` in its own folder there (:func:`~lipmap.mapping.joint.planes_variant_dir`),
+    shared by the maps that differ only after the plane optimization; default ``out_dir``.
     """
     from dataclasses import replace
 
@@ -272,7 +243,8 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
     else:
         lines_by_view = _lines_by_view(lines_h5, scene.mapping)
         t = time.time()
-        planes = fit_planes_with_lines(scene, lines_by_view, out_dir, conf, lines_source, overwrite)
+        planes_dir = out_dir if planes_root is None else planes_variant_dir(planes_root, scene, conf, lines_source)
+        planes = fit_planes_with_lines(scene, lines_by_view, planes_dir, conf, lines_source, overwrite)
         timings["optimize_s"] = time.time() - t
         checkpoint("planes")
         t = time.time()
@@ -282,6 +254,7 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
         from ..planes.check import plane_stats
 
         lm.metadata["plane_stats"] = plane_stats(planes, scene.mapping)
+        lm.metadata["planes_file"] = os.path.relpath(planes_dir / "planes.h5", out_dir)  # shared when planes_root
     timings["total_s"] = time.time() - t0
     lm.metadata.update({"scene": scene.name, "dataset": scene.dataset, "pose_source": scene.pose_source,
                         "timings": timings, "method": method, "preset": conf.preset,

@@ -652,10 +652,10 @@ def _progress_bar(conf: PlaneOptConfig, total: int):
 def planes_stamp(scene, conf: PlaneOptConfig, extra: Optional[dict] = None):
     """The :class:`~lipmap.artifacts.Stamp` of ``planes.h5``: the settings, the mapping views and ``extra``
     (what else shapes the planes, e.g. the line term and its 2D lines)."""
-    from ..artifacts import Stamp, mapping_code_digest, scene_key
+    from ..artifacts import Stamp, planes_code_digest, scene_key
 
     settings = {k: v for k, v in conf.to_dict().items() if k not in ("progress", "device", "name")}
-    return Stamp("planes", {"planes": settings, "scene": scene_key(scene), "code": mapping_code_digest(), **(extra or {})})
+    return Stamp("planes", {"planes": settings, "scene": scene_key(scene), "code": planes_code_digest(), **(extra or {})})
 
 
 def fit_planes(scene, out_dir, conf: Optional[PlaneOptConfig] = None, extra_loss: Optional[ExtraLoss] = None,
