@@ -291,6 +291,11 @@ def _add_mapping_args(p, method_default: str):
                         "detected line (fast: 3,0.03; paper: 1,0.01). Wider gates give more plane edges and fewer "
                         "on-plane lines: at 10,0.1 the RedKitchen mini's edges reach F@5cm 0.65 and its full map drops "
                         "(README, Mapping)")
+    p.add_argument("--aggregate", action="store_true",
+                   help="lipmap: one line per physical line: lines sharing detections merged, each spanning its track's "
+                        "detections, single-image lines along a tracked one absorbed (off in every preset: the RedKitchen "
+                        "mini's edges reach R@50mm 495 and its full map 876, and the held-out split's weak queries "
+                        "localize worse; README, Mapping)")
     p.add_argument("--skip-bad-frames", action="store_true", help="skip unreadable mapping frames (default: stop with an error)")
     p.add_argument("--overwrite", action="store_true", help="remake the artifacts instead of reusing them")
 
@@ -330,6 +335,8 @@ def _mapping_conf(args, **overrides):
         overrides["planes"] = _full_resolution_planes(args.preset, args.full_resolution)
     if getattr(args, "extract_gate", None) is not None:
         overrides["extract"] = _extract_gate(args.extract_gate)
+    if getattr(args, "aggregate", False):
+        overrides["aggregate"] = {"enabled": True}
     return {"preset": args.preset, **overrides} if overrides else args.preset
 
 

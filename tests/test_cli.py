@@ -147,6 +147,21 @@ def test_extract_gate_option_sets_the_extraction_thresholds(synthetic_root, tmp_
     assert not any(tmp_path.iterdir())  # refused before any work
 
 
+def test_aggregate_option_turns_the_aggregation_on():
+    from argparse import Namespace
+
+    from localization.cli import _mapping_conf
+    from lipmap.mapping.pipeline import get_conf
+
+    def conf(**kw):
+        return get_conf(_mapping_conf(Namespace(preset=kw.pop("preset", "fast"), keyframes=None, **kw)))
+
+    assert not conf().aggregate.enabled and not conf(aggregate=False).aggregate.enabled
+    on = conf(aggregate=True, extract_gate="6,0.06")
+    assert on.aggregate.enabled and on.aggregate.merge and on.extract.max_dist == 6.0
+    assert conf(preset="paper", aggregate=True).aggregate.enabled
+
+
 def test_eval_bad_line_rescue(tmp_path, capsys):
     assert main(["eval", "--dataset", "synthetic", "--out", str(tmp_path), "--line-rescue", "-1"]) == 2
     assert "--line-rescue takes a number of inliers >= 0" in capsys.readouterr().err

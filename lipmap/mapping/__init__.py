@@ -20,6 +20,11 @@ Lines (Sec. 3.2 assignment, Sec. 3.3 line loss, Sec. 3.4 finalization; appendix 
     tracks                    lipmap.mapping.extract.build_tracks (the paper's track builder)
     on-plane lines (ours)     lipmap.mapping.pipeline.lipmap_linemap -> _add_on_plane_lines (detections no
                               edge explains, lifted onto the planes with lipmap.lift; not in the paper)
+    one line per physical     lipmap.mapping.aggregate.aggregate_linemap (ours: lines sharing detections merged,
+    line (ours)               each spanning its track as LIMAP's segments do, single-image lines along a
+                              tracked one absorbed; not in the paper, off in ``paper``)
+    the plane step            lipmap.mapping.joint.fit_planes_with_lines (the line term -> planes.h5, stamped
+                              with the code that shapes planes only)
     the mapping step          lipmap.mapping.pipeline.map_scene (lines2d.h5 -> planes.h5 -> linemap.h5)
 
 Localization (Sec. 4.5; ours, the reference code has none):
