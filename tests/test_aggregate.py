@@ -141,3 +141,32 @@ def test_aggregate_absorbs_a_single_image_edge_into_the_tracked_line():
     assert out.planes["edge_line"].tolist() == [[0, -1, -1, -1]] and out.supports[0, 0] == 3
     np.testing.assert_allclose(out.lines[0], EDGE, atol=2e-3)
     assert len(aggregate_linemap(lm, VIEWS, AggregateConfig(enabled=True, absorb=False))) == 2
+
+
+def _plane_depth(view, z_world=2.0):
+    """The camera-frame depth map of the world plane z = ``z_world`` seen from ``view`` (COLMAP pixel centres)."""
+    from lipmap.poses import invert_T
+
+    H, W = view.camera.height, view.camera.width
+    uv = np.stack(np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5), -1).reshape(-1, 2)
+    T = invert_T(view.cam_from_world)
+    rays = geo.unproject_points(uv, 1.0, view.camera) @ T[:3, :3].T
+    X = T[:3, 3] + ((z_world - T[2, 3]) / rays[:, 2])[:, None] * rays
+    return geo.transform_points(view.cam_from_world, X)[:, 2].reshape(H, W)
+
+
+def test_track_extents_with_a_depth_check_drop_endpoints_off_the_sensor_depth():
+    """With the sensor depth of the surface the edge lies on, every endpoint counts; where a view's depth says the
+    surface is elsewhere (1 m from the camera), that view's endpoints do not; where it has no depth, they count."""
+    line = np.stack([_point(0.3), _point(0.6)])
+    segs = np.array([_detection(VIEWS[0], 0.1, 0.9), _detection(VIEWS[1], 0.25, 0.7), _detection(VIEWS[2], 0.0, 1.0)])
+    rows = np.array([[0, 0, 0], [0, 1, 0], [0, 2, 0]])
+    true = {v.name: _plane_depth(v) for v in VIEWS}
+    _, vals = track_extents(line[None], rows, segs, VIEWS, depth_by_view=true, depth_tol=0.05)
+    assert len(vals) == 6
+    other = {**true, VIEWS[2].name: np.full_like(true[VIEWS[2].name], 1.0)}
+    _, vals = track_extents(line[None], rows, segs, VIEWS, depth_by_view=other, depth_tol=0.05)
+    np.testing.assert_allclose(np.sort(vals), np.sort(np.array([0.1, 0.9, 0.25, 0.7]) - 0.3), atol=2e-3)
+    holes = {**true, VIEWS[2].name: np.zeros_like(true[VIEWS[2].name])}
+    assert len(track_extents(line[None], rows, segs, VIEWS, depth_by_view=holes, depth_tol=0.05)[1]) == 6
+    assert len(track_extents(line[None], rows, segs, VIEWS, depth_by_view=other, depth_tol=0.0)[1]) == 6  # off

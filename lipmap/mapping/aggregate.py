@@ -27,6 +27,7 @@ from scipy.sparse.csgraph import connected_components
 
 from .. import geometry as geo
 from ..poses import invert_T
+from .depth_lookup import depth_pixels, nearest_depth_residual
 
 
 @dataclass(frozen=True)
@@ -39,6 +40,9 @@ class AggregateConfig:
     extend: bool = True
     num_outliers: int = 0  # extreme endpoint values left out at each end (LIMAP: 2, but it may also shrink a line)
     min_ray_angle_deg: float = 5.0  # an endpoint whose ray runs this close to the line's direction has no position on it
+    # m: an endpoint counts only where the line's point lies this close to that view's sensor depth (0: no check);
+    # among parallel lines a few px apart, a distant view's detection of a neighbour can pass the 2D track test
+    extend_depth_tol: float = 0.0
     absorb: bool = True
     absorb_max_dist: float = 0.02  # m
     absorb_max_angle_deg: float = 3.0
@@ -95,7 +99,7 @@ def merge_groups(lines: np.ndarray, pairs: np.ndarray, max_angle_deg: float, max
 
 
 def track_extents(lines: np.ndarray, rows: np.ndarray, segments: np.ndarray, views,
-                  min_ray_angle_deg: float = 5.0) -> tuple:
+                  min_ray_angle_deg: float = 5.0, depth_by_view=None, depth_tol: float = 0.0) -> tuple:
     """Where each tracked detection's endpoints fall along its 3D line.
 
     Each endpoint is moved onto the line's projection in the detection's view (its foot on that 2D line), and the
@@ -105,6 +109,10 @@ def track_extents(lines: np.ndarray, rows: np.ndarray, segments: np.ndarray, vie
     Args:
         lines: :math:`(L, 2, 3)`; rows: :math:`(T, 3)` (line, view index, 2D line index);
         segments: :math:`(T, 4)` the detections of ``rows``.
+
+    With ``depth_tol`` > 0 and ``depth_by_view`` ({view name: (H, W) depth, 0 = invalid}), a value counts only
+    where the line's point at it lies within ``depth_tol`` of the view's sensor depth (the nearest of the 3x3 pixels
+    around its projection; no valid depth there: it counts).
 
     Returns:
         **line** :math:`(V,)` and **value** :math:`(V,)`: two per usable detection (in front of the view, the ray
@@ -132,6 +140,13 @@ def track_extents(lines: np.ndarray, rows: np.ndarray, segments: np.ndarray, vie
         uu = np.repeat(u[li], 2, axis=0)
         s, _ = geo.closest_point_params(np.repeat(lines[li, 0], 2, axis=0), uu, world_from_cam[:3, 3], rays)
         ok = np.repeat(valid, 2) & (np.abs((uu * rays).sum(1)) < cos_max) & np.isfinite(s)
+        depth = depth_by_view.get(v.name) if (depth_tol > 0 and depth_by_view) else None
+        if depth is not None and ok.any():
+            X = np.repeat(lines[li, 0], 2, axis=0) + np.where(ok, s, 0.0)[:, None] * uu
+            uv, z = geo.project_points(X, v.cam_from_world, v.camera)
+            row, col, inside = depth_pixels(uv, z, v.camera, depth.shape)
+            res = np.where(inside, nearest_depth_residual(depth, row, col, z), np.inf)
+            ok &= ~np.isfinite(res) | (res <= depth_tol)
         out_line.append(np.repeat(li, 2)[ok])
         out_val.append(s[ok])
     if not out_line:
@@ -205,7 +220,7 @@ def absorb_targets(lines: np.ndarray, n_images: np.ndarray, max_dist: float, max
     return target
 
 
-def aggregate_linemap(lm, views, conf: AggregateConfig):
+def aggregate_linemap(lm, views, conf: AggregateConfig, depth_by_view=None):
     """``lm`` (a LiP-Map LineMap: plane edges first, then on-plane lines) merged, extended and with its single-image
     lines absorbed (module docstring); plane edges stay first, and the planes' edge -> line table follows."""
     from ..linemap import LineMap, edge_line_mask
@@ -239,8 +254,8 @@ def aggregate_linemap(lm, views, conf: AggregateConfig):
         tracks = [list(t.values()) for t in g_tracks]
         rows = _rows(tracks, index)
         segs = np.array([o.segment for t in tracks for o in t], dtype=float).reshape(-1, 4)
-        g_lines = extended(g_lines, *track_extents(g_lines, rows, segs, views, conf.min_ray_angle_deg),
-                           conf.num_outliers)
+        g_lines = extended(g_lines, *track_extents(g_lines, rows, segs, views, conf.min_ray_angle_deg, depth_by_view,
+                                                   conf.extend_depth_tol), conf.num_outliers)
     # 3. a line seen in one image along one seen in more is that line, seen once more
     target = np.full(n_groups, -1, np.int64)
     if conf.absorb:

@@ -163,7 +163,7 @@ def lipmap_linemap(scene, planes, lines_by_view: dict, conf: MappingConfig, dept
         if conf.refine.lines in ("on-plane", "all"):
             lm = refine_linemap(lm, scene.mapping, lines_by_view, conf.refine, caster, which=onp)
         lm = add_tracks(lm, scene.mapping, lines_by_view, conf.extract, caster, which=onp)
-    return aggregate_linemap(lm, scene.mapping, conf.aggregate)
+    return aggregate_linemap(lm, scene.mapping, conf.aggregate, depth_by_view)
 
 
 def _depth_check(lm, scene, conf: MappingConfig, depth_by_view):
