@@ -72,14 +72,6 @@ def shared_detection_pairs(rows: np.ndarray) -> np.ndarray:
     return np.unique(np.concatenate(pairs), axis=0) if pairs else np.zeros((0, 2), np.int64)
 
 
-def _perpendicular(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
-    """Distance of points (P, K, 3) to the infinite lines (P, 2, 3)."""
-    d = lines[:, 1] - lines[:, 0]
-    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-    r = points - lines[:, None, 0]
-    return np.linalg.norm(r - (r * d[:, None]).sum(-1, keepdims=True) * d[:, None], axis=-1)
-
-
 def merge_groups(lines: np.ndarray, pairs: np.ndarray, max_angle_deg: float, max_dist: float) -> np.ndarray:
     """(L,) group label of each line: connected components of the ``pairs`` that agree in 3D.
 
@@ -91,7 +83,7 @@ def merge_groups(lines: np.ndarray, pairs: np.ndarray, max_angle_deg: float, max
         a, b = lines[pairs[:, 0]], lines[pairs[:, 1]]
         ua, ub = a[:, 1] - a[:, 0], b[:, 1] - b[:, 0]
         cos = np.abs((ua * ub).sum(1)) / np.maximum(np.linalg.norm(ua, axis=1) * np.linalg.norm(ub, axis=1), 1e-12)
-        dist = np.maximum(_perpendicular(a, b).max(1), _perpendicular(b, a).max(1))
+        dist = np.maximum(geo.point_line_distance(a, b[:, None]).max(1), geo.point_line_distance(b, a[:, None]).max(1))
         ok = (cos >= np.cos(np.radians(max_angle_deg))) & (dist <= max_dist)
         pairs = pairs[ok]
     g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
@@ -211,9 +203,7 @@ def absorb_targets(lines: np.ndarray, n_images: np.ndarray, max_dist: float, max
         cand = cand[np.abs(u[cand] @ u[i]) >= cos_min]
         if not len(cand):
             continue
-        r = pts[k][None] - lines[cand, None, 0]  # (C, n, 3)
-        t = np.clip((r * u[cand, None]).sum(-1), 0.0, length[cand, None])
-        dist = np.linalg.norm(r - t[..., None] * u[cand, None], axis=-1)
+        dist = geo.point_segment_distance(pts[k][None], lines[cand][:, None])  # (C, n)
         ok = (dist <= max_dist).mean(1) >= cover
         if ok.any():
             target[i] = cand[ok][np.argmin(dist[ok].mean(1))]
