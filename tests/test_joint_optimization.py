@@ -211,6 +211,31 @@ def test_on_plane_lines_take_the_input_depth_where_no_plane_models_it():
             assert np.abs(z - off).max() < 0.01
 
 
+def test_explained_detections_keep_only_those_near_the_edge_with_a_gate():
+    """A track built with loose gates holds detections beside the edge (other lines): with ``explain_gate`` they are
+    no longer explained, so the on-plane step lifts them; the detection on the edge stays explained."""
+    from lipmap.geometry import project_segments
+    from lipmap.linemap import LineMap
+    from lipmap.mapping.pipeline import explained_detections
+
+    corners, views = panel_scene()
+    edge = corners[0][[0, 1]]  # one edge of the panel
+    tracks = [[]]
+    for v in views[:2]:
+        seg = project_segments(edge[None], v.cam_from_world, v.camera)[0][0]
+        d = seg[1] - seg[0]
+        n = np.array([-d[1], d[0]]) / np.linalg.norm(d)
+        c = seg.mean(0)
+        turn = Rotation.from_euler("z", 0.03).as_matrix()[:2, :2]  # 0.03 rad about the segment's middle
+        tracks[0] += [(v.name, 0, seg.reshape(4)), (v.name, 1, (seg + 3.0 * n).reshape(4)),
+                      (v.name, 2, ((seg - c) @ turn.T + c).reshape(4))]
+    lm = LineMap(edge[None], tracks)
+    assert explained_detections(lm, views, ()) == {v.name: [0, 1, 2] for v in views[:2]}
+    assert explained_detections(lm, views, (2.0, 0.01)) == {v.name: [0] for v in views[:2]}
+    assert explained_detections(lm, views, (4.0, 0.01)) == {v.name: [0, 1] for v in views[:2]}
+    assert explained_detections(lm, views, (4.0, 0.05)) == {v.name: [0, 1, 2] for v in views[:2]}
+
+
 def test_plane_or_input_depth_known_values():
     from lipmap.mapping.assign import plane_or_input_depth
 

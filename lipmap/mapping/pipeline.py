@@ -17,6 +17,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from .. import geometry as geo
 from .. import logger
 from ..artifacts import Stamp, mapping_code_digest, reuse, scene_key, variant_dir
 from ..errors import InputError
@@ -49,6 +50,9 @@ class MappingConfig:
     line_depth_gate: float = 0.1
     on_plane_lines: bool = True  # lift the detections no plane edge explains onto the planes (ours, not the paper's)
     plane_depth_tol: float = 0.03  # m: on-plane lines take the input depth where the planes are farther from it (clutter)
+    # (px, rad): a detection an edge tracks stays out of the on-plane lines only when the edge projects this close to
+    # it; () = every detection an edge tracks. Loose track gates claim neighbouring detections that are other lines
+    explain_gate: tuple = ()
     # 3 px / 0.03 rad: "fast" trains at half resolution, where the paper's 1 px is half a training pixel
     extract: ExtractConfig = field(default_factory=lambda: ExtractConfig(max_dist=3.0, max_angle=0.03))
     lift: str = "lift-merge-loose"  # lipmap.lift preset: method "lift", and the on-plane lines of "lipmap"
@@ -181,6 +185,30 @@ def _depth_check(lm, scene, conf: MappingConfig, depth_by_view):
     return lm
 
 
+def explained_detections(edges, views, gate: tuple = ()) -> dict:
+    """{view name: indices of the detections that the lines ``edges`` explain}: every detection in their tracks, or
+    with ``gate`` = (px, rad) those the line's projection lies within px (both endpoints) and rad of."""
+    rows = [(l, o) for l, t in enumerate(edges.tracks) for o in t]
+    if gate and rows:
+        max_px, max_rad = (float(x) for x in gate)
+        by_view = {}
+        for i, (_, o) in enumerate(rows):
+            by_view.setdefault(o.image_name, []).append(i)
+        views = {v.name: v for v in views}
+        keep = np.zeros(len(rows), bool)
+        for name, idx in by_view.items():
+            v = views[name]
+            proj, valid = geo.project_segments(edges.lines[[rows[i][0] for i in idx]], v.cam_from_world, v.camera)
+            det = np.stack([rows[i][1].segment for i in idx])
+            with np.errstate(invalid="ignore"):
+                keep[idx] = valid & (geo.angle_distance(proj, det) < max_rad) & (geo.perpendicular_distance(proj, det) < max_px)
+        rows = [r for r, k in zip(rows, keep) if k]
+    explained = {}
+    for _, o in rows:
+        explained.setdefault(o.image_name, []).append(o.line2d_index)
+    return explained
+
+
 def _add_on_plane_lines(edges, scene, corners, lines_by_view: dict, conf: MappingConfig, depth_by_view=None):
     """``edges`` followed by the detections no edge line explains, lifted onto the planes (onto the input
     depth where the planes do not model it, ``conf.plane_depth_tol``)."""
@@ -188,10 +216,7 @@ def _add_on_plane_lines(edges, scene, corners, lines_by_view: dict, conf: Mappin
     from ..linemap import LineMap
     from .assign import PlaneRaycaster, plane_depth, plane_or_input_depth
 
-    explained = {}
-    for t in edges.tracks:
-        for o in t:
-            explained.setdefault(o.image_name, []).append(o.line2d_index)
+    explained = explained_detections(edges, scene.mapping, conf.explain_gate)
     caster = PlaneRaycaster(corners)
     logger.info("lifting the detections no plane edge explains onto the planes")
     depth_by_view = depth_by_view or {}
