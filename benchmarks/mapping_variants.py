@@ -6,8 +6,9 @@
 Each variant is mapped into OUT/<NAME> (reused when a map made with the same settings is there), and its planes into
 OUT/planes-<preset>-<digest>: variants whose plane optimization is the same (by its stamp: settings and the code that
 shapes planes) share one, so a variant that changes only extraction, tracks or on-plane lines costs seconds.
-Prints a table (full map and plane edges alone: F@5cm, R@50mm, images per line;
-plane count and depth error) and writes it to ``benchmarks/results/mapping-variants-<dataset>-<scene>.json``.
+Prints a table (full map and plane edges alone: F@5cm, R@50mm, images per line, and the length-weighted share of
+the lines' visible length that the mapping views' detections show, ``lipmap.image_support``; plane count and depth
+error) and writes it to ``benchmarks/results/mapping-variants-<dataset>-<scene>.json``.
 """
 from __future__ import annotations
 
@@ -19,6 +20,10 @@ import numpy as np
 
 from lipmap.datasets import load_scene
 from lipmap.evaluation import evaluate_linemap, load_ground_truth, scene_ground_truth
+from lipmap.image_support import image_support
+from lipmap.frames import depth_maps
+from lipmap.lines2d import load_lines
+from lipmap.mapping.keyframes import keyframe_views
 from lipmap.linemap import LineMap
 from lipmap.mapping.extract import ExtractConfig
 from lipmap.mapping.pipeline import edge_line_mask, get_conf, map_scene
@@ -28,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import results  # noqa: E402
 
 HEADER = ["variant", "overrides", "lines", "F@5cm", "R@50mm", "edge lines", "edges F@5cm", "edges R@50mm",
-          "images per line: median / mean (edges)", "planes", "plane depth error median / > 5 cm", "plane optimization"]
+          "images per line: median / mean (edges)", "shown by its images (edges)", "planes", "plane depth error median / > 5 cm", "plane optimization"]
 
 
 def _conf(preset: str, over: dict):
@@ -39,10 +44,10 @@ def _conf(preset: str, over: dict):
     return {"preset": preset, **over}
 
 
-def _metrics(lm, gt) -> dict:
+def _metrics(lm, gt, views, lines_by_view, depth) -> dict:
     r = evaluate_linemap(lm, gt)
     m1, m2 = r["M1"]["line"], r["M2"]
-    return {"n": len(lm), "prec": m1["prec@0.05"], "recall": m1["recall@0.05"], "f": m1["f@0.05"], "r5": m2["R@5mm"],
+    return {"shown": image_support(lm, views, lines_by_view, depth)["shown"], "n": len(lm), "prec": m1["prec@0.05"], "recall": m1["recall@0.05"], "f": m1["f@0.05"], "r5": m2["R@5mm"],
             "r50": m2["R@50mm"], "median_images": float(np.median(lm.supports[:, 0])) if len(lm) else 0.0,
             "mean_images": float(np.mean(lm.supports[:, 0])) if len(lm) else 0.0}
 
@@ -57,6 +62,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     scene = load_scene(args.dataset, args.root, args.scene)
     gt = load_ground_truth(scene_ground_truth(scene))
+    depth = depth_maps(scene.mapping)
     rows, data = [], {}
     specs = [(spec.partition("=")[0], json.loads(spec.partition("=")[2] or "{}")) for spec in args.variants]
     seen_planes = set()
@@ -65,7 +71,10 @@ def main(argv=None):
         planes_h5 = (args.out / name / lm.metadata["planes_file"]).resolve()
         reuses = planes_h5 in seen_planes  # another variant of this run made (or reused) the same planes
         seen_planes.add(planes_h5)
-        full, edges = _metrics(lm, gt), _metrics(lm.subset(edge_line_mask(lm)), gt)
+        views = keyframe_views(scene.mapping, get_conf(_conf(args.preset, over)).keyframes)  # the views of lines2d.h5
+        lines_by_view = {v.name: load_lines(args.out / name / "lines2d.h5", v.name) for v in views}
+        full = _metrics(lm, gt, views, lines_by_view, depth)
+        edges = _metrics(lm.subset(edge_line_mask(lm)), gt, views, lines_by_view, depth)
         ps = lm.metadata.get("plane_stats", {})
         # the plane optimization's own time (planes.h5), so that a variant reusing planes still shows it
         t = load_planes_meta(planes_h5).get("history", {}).get("total_seconds")
@@ -73,7 +82,8 @@ def main(argv=None):
         rows.append([name, f"`{json.dumps(over)}`" if over else f"preset `{args.preset}`", full["n"], f"{full['f']:.3f}",
                      f"{full['r50']:.0f}", edges["n"], f"{edges['f']:.3f}", f"{edges['r50']:.0f}",
                      f"{full['median_images']:.0f} / {full['mean_images']:.1f} ({edges['median_images']:.0f} / "
-                     f"{edges['mean_images']:.1f})", ps.get("n_planes", ""),
+                     f"{edges['mean_images']:.1f})", f"{100 * full['shown']:.0f} % ({100 * edges['shown']:.0f} %)",
+                     ps.get("n_planes", ""),
                      f"{ps.get('depth_error_median_cm', float('nan')):.1f} cm / {100 * ps.get('depth_error_over_5cm', float('nan')):.0f} %",
                      "" if t is None or reuses else f"{t:.0f} s planes"])
         print("| " + " | ".join(map(str, rows[-1])) + " |", flush=True)
