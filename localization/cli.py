@@ -225,7 +225,8 @@ def cmd_map_eval(args):
             raise InputError("give --gt MESH_OR_PLY, or --dataset, --root and --scene")
         from lipmap.datasets import load_scene
 
-        gt = scene_ground_truth(load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source))
+        scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source)
+        gt = scene_ground_truth(scene)
     overrides = {}
     if args.thresholds:
         try:
@@ -235,6 +236,11 @@ def cmd_map_eval(args):
     res = evaluate_linemap(lm, gt, **overrides)
     res["min_support"] = args.min_support
     print(format_metrics(res))
+    lines_h5 = path.with_name("lines2d.h5")
+    if args.gt is None and path.is_file() and lines_h5.exists():
+        res["image_support"] = _image_support(lm, scene, lines_h5)
+        print(f"shown by the mapping images: {100 * res['image_support']:.0f} % of the lines' visible length "
+              "(within 2 px and 1 deg of a detection; lipmap.image_support)")
     from lipmap.viz import plot_pr_curve
 
     png = Path(args.linemap).with_name(Path(args.linemap).stem + "_pr.png")
@@ -245,6 +251,19 @@ def cmd_map_eval(args):
 
         write_text_atomic(args.json, json.dumps(res, indent=1, default=float))
         print(f"metrics: {args.json}")
+
+
+def _image_support(lm, scene, lines_h5: Path) -> float:
+    """:func:`lipmap.image_support.image_support` of ``lm`` over the mapping views whose lines ``lines_h5`` holds."""
+    import h5py
+
+    from lipmap.frames import depth_maps
+    from lipmap.image_support import image_support
+    from lipmap.lines2d import load_lines
+
+    with h5py.File(lines_h5, "r") as f:
+        views = [v for v in scene.mapping if v.name in f and "lines" in f[v.name]]
+    return image_support(lm, views, {v.name: load_lines(lines_h5, v.name) for v in views}, depth_maps(views))["shown"]
 
 
 POSE_SOURCES = ("posetxt", "dslam", "sfm")

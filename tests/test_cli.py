@@ -42,6 +42,8 @@ def test_map_lift_then_map_eval(synthetic_root, tmp_path, capsys):
                  "--json", str(tmp_path / "m.json")]) == 0
     m = json.loads((tmp_path / "m.json").read_text())
     assert m["n_lines"] > 100 and m["M1"]["line"]["prec@0.05"] > 0.9  # exact synthetic depth
+    # each line is a lifted detection of one of these views (0.40 of the visible length shown on this room)
+    assert "shown by the mapping images:" in capsys.readouterr().out and 0.2 < m["image_support"] <= 1.0
 
 
 def test_map_prints_the_plane_statistics(tmp_path, capsys):
