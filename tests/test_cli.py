@@ -2,6 +2,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from localization.cli import main
 
 
@@ -162,6 +164,32 @@ def test_aggregate_option_turns_the_aggregation_on():
     on = conf(aggregate=True, extract_gate="6,0.06")
     assert on.aggregate.enabled and on.aggregate.merge and on.extract.max_dist == 6.0
     assert conf(preset="paper", aggregate=True).aggregate.enabled
+
+
+def test_track_and_explain_gates_set_the_map_that_meets_every_mapping_target():
+    """The README's map meeting every mapping target, from the command line; gates checked as --extract-gate's."""
+    from localization.cli import _mapping_conf, build_parser
+    from lipmap.errors import InputError
+    from lipmap.mapping.pipeline import get_conf
+
+    def conf(*argv):
+        args = build_parser().parse_args(["map", "--dataset", "synthetic", "--root", "R", "--scene", "S", "--out", "O",
+                                          *argv])
+        return get_conf(_mapping_conf(args))
+
+    c = conf("--extract-gate", "4,0.04", "--track-gate", "4,0.05", "--explain-gate", "2,0.01", "--aggregate")
+    e = c.extract
+    assert (e.max_dist, e.max_angle, e.track_max_dist, e.track_max_angle) == (4.0, 0.04, 4.0, 0.05)
+    assert tuple(c.explain_gate) == (2.0, 0.01) and c.aggregate.enabled
+    default = conf()
+    assert default.explain_gate == () and (default.extract.track_max_dist, default.extract.track_max_angle) == (2.0, 0.01)
+    only_tracks = conf("--track-gate", "3,0.03").extract
+    assert (only_tracks.max_dist, only_tracks.max_angle) == (default.extract.max_dist, default.extract.max_angle)
+    for bad in ("4", "0,0.05", "4,2"):
+        with pytest.raises(InputError, match="--track-gate"):
+            conf("--track-gate", bad)
+        with pytest.raises(InputError, match="--explain-gate"):
+            conf("--explain-gate", bad)
 
 
 def test_eval_bad_line_rescue(tmp_path, capsys):
