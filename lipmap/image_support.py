@@ -50,8 +50,8 @@ def image_support(lines, views, lines_by_view: dict, depth_by_view=None, max_px:
         shown = np.zeros((len(seen), samples), bool)
         vs = vis[seen]
         if len(det):
-            ends = np.stack([vs.argmax(1), samples - 1 - vs[:, ::-1].argmax(1)], 1)  # first and last visible samples
-            dp = np.take_along_axis(uv, ends[:, 1, None, None], 1)[:, 0] - np.take_along_axis(uv, ends[:, 0, None, None], 1)[:, 0]
+            rows = np.arange(len(seen))
+            dp = uv[rows, samples - 1 - vs[:, ::-1].argmax(1)] - uv[rows, vs.argmax(1)]  # last - first visible sample
             dd = det[:, 1] - det[:, 0]
             norms = np.linalg.norm(dp, axis=1)[:, None] * np.linalg.norm(dd, axis=1)[None]
             cos = np.abs(dp @ dd.T) / np.maximum(norms, 1e-12)

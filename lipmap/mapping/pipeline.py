@@ -194,10 +194,10 @@ def explained_detections(edges, views, gate: tuple = ()) -> dict:
         by_view = {}
         for i, (_, o) in enumerate(rows):
             by_view.setdefault(o.image_name, []).append(i)
-        views = {v.name: v for v in views}
+        view_of = {v.name: v for v in views}
         keep = np.zeros(len(rows), bool)
         for name, idx in by_view.items():
-            v = views[name]
+            v = view_of[name]
             proj, valid = geo.project_segments(edges.lines[[rows[i][0] for i in idx]], v.cam_from_world, v.camera)
             det = np.stack([rows[i][1].segment for i in idx])
             with np.errstate(invalid="ignore"):
