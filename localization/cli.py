@@ -300,7 +300,7 @@ def _add_mapping_args(p, method_default: str):
 
     p.add_argument("--refine-lines", nargs="?", const="all", default=None, choices=list(REFINE_LINES),
                    help="lipmap: refine these lines (no value: all) against every mapping view that sees them, then "
-                        "track them again (default: the preset's; fast refines the plane edges, quick and paper none)")
+                        "track them again (default: the preset's; fast refines all, quick and paper none)")
     p.add_argument("--full-resolution", nargs="?", const=-1, default=None, type=int, metavar="N",
                    help="lipmap: train the planes at the views' own resolution instead of the preset's (fast: half): "
                         "throughout (no value; what a GPU does at about the same cost), or only the last N iterations "

@@ -75,7 +75,7 @@ def test_keyframes_option_sets_the_mapping_keyframes(synthetic_root, tmp_path, c
     assert (conf.keyframes.min_translation, conf.keyframes.min_rotation_deg) == (0.1, 2.5)
     assert not get_conf(_mapping_conf(Namespace(preset="quick", keyframes="0"))).keyframes.enabled
     assert _mapping_conf(Namespace(preset="fast", keyframes=None)) == "fast"
-    assert get_conf("fast").refine.enabled and get_conf("fast").refine.lines == "edges"
+    assert get_conf("fast").refine.enabled and get_conf("fast").refine.lines == "all"
     assert not get_conf("quick").refine.enabled and not get_conf("paper").refine.enabled
     refine = get_conf(_mapping_conf(Namespace(preset="fast", keyframes=None, refine_lines="on-plane"))).refine
     assert refine.enabled and refine.lines == "on-plane"
