@@ -211,10 +211,10 @@ def cmd_map_eval(args):
     from lipmap.linemap import LineMap
 
     path = Path(args.linemap)
-    if args.min_support < 1:
-        raise InputError(f"--min-support must be >= 1 image, got {args.min_support}")
+    if args.min_support < 0:
+        raise InputError(f"--min-support must be >= 0 images, got {args.min_support}")
     lm = LineMap.from_limap(path) if path.is_dir() else LineMap.load(path)
-    if args.min_support > 1:
+    if args.min_support > 0:
         n_all = len(lm)
         lm = lm.subset(lm.supports[:, 0] >= args.min_support)
         print(f"{len(lm)} of {n_all} lines are seen in >= {args.min_support} images")
@@ -449,8 +449,9 @@ def _add_map_eval_parser(sub):
     p.add_argument("--linemap", type=Path, required=True, help="linemap.h5, or a LIMAP folder holding finaltracks/")
     p.add_argument("--gt", type=Path, default=None, help="GT mesh or point cloud (PLY)")
     p.add_argument("--thresholds", default=None, help="M1 thresholds in metres, comma separated (default 0.05)")
-    p.add_argument("--min-support", type=int, default=1, metavar="N",
-                   help="evaluate only the lines seen in at least N images (LIMAP's n_visible_views; default 1: all)")
+    p.add_argument("--min-support", type=int, default=0, metavar="N",
+                   help="evaluate only the lines seen in at least N images (LIMAP's n_visible_views; default 0: all, "
+                        "also the lines no image's detection agrees with)")
     p.add_argument("--dataset", choices=["7scenes", "synthetic"])
     p.add_argument("--root", type=Path)
     p.add_argument("--scene")

@@ -35,7 +35,7 @@ class LineQueryConfig:
     # few pixels off, a 1-px region can fall wholly on the far side of the edge and miss its plane.
     region_radius: float = 3.0
     occlusion_tol: float = 0.05  # m, projection method's visibility test against the planes
-    min_support: int = 1  # map lines seen in fewer mapping images are not queried (1: all)
+    min_support: int = 0  # map lines seen in fewer mapping images are not queried (0: all, also those no image verifies)
     one_to_one: bool = True  # a map line matches at most one query line (its best), as a point matches one keypoint
     min_margin: float = 6.0  # projection: drop a query line whose runner-up map line scores within this of its best (0: off)
     # projection: a runner-up within this (m, both endpoints to the best's 3D line, and 5 deg) is the same physical

@@ -227,5 +227,10 @@ def test_cli_map_eval_min_support(tmp_path, capsys):
     assert "1 of 3 lines are seen in >= 2 images" in capsys.readouterr().out
     assert main([*args, "--min-support", "3", "--json", str(tmp_path / "e.json")]) == 0  # no line left
     assert json.loads((tmp_path / "e.json").read_text())["n_lines"] == 0
-    assert main([*args, "--min-support", "0"]) == 2
-    assert "--min-support must be >= 1" in capsys.readouterr().err
+    LineMap(top_face_lines(), [tracks[0], [], tracks[2]]).save(tmp_path / "linemap.h5")  # no image verifies line 1
+    assert main([*args, "--min-support", "1", "--json", str(tmp_path / "v.json")]) == 0
+    assert json.loads((tmp_path / "v.json").read_text())["n_lines"] == 2
+    assert main([*args, "--json", str(tmp_path / "all.json")]) == 0  # default 0: every line
+    assert json.loads((tmp_path / "all.json").read_text())["n_lines"] == 3
+    assert main([*args, "--min-support", "-1"]) == 2
+    assert "--min-support must be >= 0" in capsys.readouterr().err

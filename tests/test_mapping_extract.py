@@ -5,7 +5,8 @@ import torch
 
 from lipmap import geometry as geo
 from lipmap.mapping.assign import PlaneRaycaster, assign_lines, corner_edges, line_regions
-from lipmap.mapping.extract import ExtractConfig, build_tracks, depth_residuals, extract_observations, merge_edges
+from lipmap.mapping.extract import (ExtractConfig, build_tracks, depth_residuals, extract_observations, merge_edges,
+                                    track_test, verify_tracks)
 from lipmap.mapping.losses import group_loss, line_loss, robust_px
 from scipy.spatial.transform import Rotation
 
@@ -68,6 +69,32 @@ def test_extract_merge_tracks_recover_wall_edges():
     assert len(tracks) == 12
     for l, v, d in tracks:
         assert edge_line[0, d] == l
+
+
+def test_verify_tracks_keeps_only_the_detections_that_agree_with_the_final_line():
+    """Evidence that made a line, or matched it before it moved, stops counting as its support where the paper's
+    test (0.01 rad, 2 px, overlap 0.2) fails against the line as it ends; a line no detection agrees with keeps its
+    place with support 0; observations of images outside the views are kept."""
+    from lipmap.linemap import LineMap
+
+    corners, views = scene()
+    truth = corner_edges(corners[:1])[0]
+    dets = {v.name: detected(corners, v, shrink=0.05) for v in views}
+    tracks = [[(v.name, 0, dets[v.name][0]) for v in views] + [("elsewhere.png", 7, np.zeros(4))],
+              [(views[0].name, 1, dets[views[0].name][1]), (views[1].name, 1, dets[views[1].name][1] + [0, 3, 0, 3])],
+              [(views[0].name, 2, dets[views[0].name][3])]]  # a detection of another edge
+    lm = LineMap(truth[:3], tracks, metadata={"method": "test"})
+    out = verify_tracks(lm, views, ExtractConfig())
+    assert [len(t) for t in out.tracks] == [len(views) + 1, 1, 0]
+    assert out.supports.tolist() == [[len(views) + 1, len(views) + 1], [1, 1], [0, 0]]
+    assert out.metadata["n_unverified_observations"] == 2 and out.metadata["method"] == "test"
+    assert len(out) == 3 and np.array_equal(out.lines, lm.lines)
+    # the elementwise test agrees with the pairwise one of the track builder
+    proj = np.stack([geo.project_segments(truth[:2], v.cam_from_world, v.camera)[0] for v in views]).reshape(-1, 2, 2)
+    det = np.concatenate([dets[v.name][:2] for v in views]).reshape(-1, 2, 2)
+    det[1] += 2.5  # 2.5 px off
+    pair = geo.match_segments_2d(proj, det)
+    assert np.array_equal(track_test(proj, det, ExtractConfig()), np.diagonal(pair)) and not pair[1, 1] and pair[0, 0]
 
 
 def test_extraction_rejects_misaligned_planes():

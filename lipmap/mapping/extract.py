@@ -8,6 +8,8 @@
    propagated through shared edges, one PCA-fitted segment per group (``global``).
 3. ``build_tracks``: the paper's track builder - a line is tracked in a view by every detected segment
    its projection matches (angle < 0.01 rad, distance < 2 px, overlap > 0.2), if not occluded.
+4. ``verify_tracks``: the finished map's tracks keep only the detections that pass that test against the line
+   as it ends: a line's supports are the paper's, whatever made the line or moved it since.
 """
 from __future__ import annotations
 
@@ -281,3 +283,47 @@ def add_tracks(linemap, views, lines_by_view: dict, conf: ExtractConfig, caster=
             tracks[line].append((name, int(di), lines_by_view[name][di]))
     tracks = [sorted(t, key=lambda o: (o[0], int(o[1]))) for t in tracks]
     return LineMap(linemap.lines, tracks, planes=linemap.planes, metadata=dict(linemap.metadata))
+
+
+def track_test(projected, detected, conf: ExtractConfig) -> np.ndarray:
+    """The track builder's test (:func:`lipmap.geometry.match_segments_2d` at ``conf.track_*``) for given pairs:
+    (..., 2, 2) x (..., 2, 2) -> (...) bool; invalid (NaN) projections match nothing. (Here, not in geometry.py:
+    that file is part of the planes' stamp, and a new helper there would re-optimize every cached plane set.)"""
+    p, d = geo.as_segments2d(projected), geo.as_segments2d(detected)
+    with np.errstate(invalid="ignore"):
+        return ((geo.angle_distance(p, d) < conf.track_max_angle)
+                & (geo.perpendicular_distance(p, d, "max") < conf.track_max_dist)
+                & (geo.overlap_ratio(p, d) > conf.track_min_overlap))
+
+
+def verify_tracks(linemap, views, conf: ExtractConfig):
+    """``linemap`` with each track cut to the observations whose detection passes the track builder's test
+    (``conf.track_*``) against the line's final projection in that view.
+
+    A track also holds the evidence that made its line (extraction votes at the extraction gate, the detection an
+    on-plane line was lifted from) and matches made before a refinement moved the line; without this step they
+    would count as supports (M2) where they no longer agree with the line. A line none agrees with keeps its place
+    with support 0. Observations of images not among ``views`` are kept untested (imported tracks).
+    """
+    from ..linemap import LineMap
+
+    rows = [(l, o) for l, t in enumerate(linemap.tracks) for o in t]
+    if not rows:
+        return linemap
+    view_of = {v.name: v for v in views}
+    keep = np.ones(len(rows), dtype=bool)
+    by_view = {}
+    for i, (_, o) in enumerate(rows):
+        if o.image_name in view_of:
+            by_view.setdefault(o.image_name, []).append(i)
+    for name, idx in by_view.items():
+        v = view_of[name]
+        proj, valid = geo.project_segments(linemap.lines[[rows[i][0] for i in idx]], v.cam_from_world, v.camera)
+        det = np.stack([np.asarray(rows[i][1].segment, dtype=float).reshape(2, 2) for i in idx])
+        keep[idx] = valid & track_test(proj, det, conf)
+    tracks = [[] for _ in range(len(linemap))]
+    for (l, o), k in zip(rows, keep):
+        if k:
+            tracks[l].append(o)
+    meta = {**linemap.metadata, "n_unverified_observations": int((~keep).sum())}
+    return LineMap(linemap.lines, tracks, planes=linemap.planes, metadata=meta)

@@ -24,7 +24,7 @@ from ..errors import InputError
 from ..linemap import edge_line_mask  # noqa: F401 - its home is the artifact; kept importable from here
 from ..presets import resolve
 from .aggregate import AggregateConfig, aggregate_linemap
-from .extract import ExtractConfig, add_tracks, depth_residuals, extract_observations, merge_edges
+from .extract import ExtractConfig, add_tracks, depth_residuals, extract_observations, merge_edges, verify_tracks
 from .joint import fit_planes_with_lines, line_supervision, lines_settings, planes_variant_dir  # noqa: F401 - importable from here
 from .keyframes import KeyframeConfig, keyframe_views
 from .refine import RefineConfig, refine_linemap
@@ -131,9 +131,10 @@ def detect_or_import_lines(views, out_dir: Path, conf: MappingConfig, lines_sour
 def lipmap_linemap(scene, planes, lines_by_view: dict, conf: MappingConfig, depth_by_view=None):
     """Extraction, merging and tracks from optimized planes -> LineMap (with planes and edge_line).
 
-    Every line's track holds the detections that produced it (extraction votes, or the lifted detection)
-    and those the track builder matches in every mapping view that sees it past the planes
-    (:func:`~lipmap.mapping.extract.add_tracks`).
+    Every line's track holds the detections the track builder matches in every mapping view that sees it past the
+    planes (:func:`~lipmap.mapping.extract.add_tracks`), and those that produced it (extraction votes, or the
+    lifted detection) where they agree with the finished line by the same test
+    (:func:`~lipmap.mapping.extract.verify_tracks`).
     """
     from ..linemap import LineMap
     from .assign import PlaneRaycaster
@@ -167,7 +168,8 @@ def lipmap_linemap(scene, planes, lines_by_view: dict, conf: MappingConfig, dept
         if conf.refine.lines in ("on-plane", "all"):
             lm = refine_linemap(lm, scene.mapping, lines_by_view, conf.refine, caster, which=onp)
         lm = add_tracks(lm, scene.mapping, lines_by_view, conf.extract, caster, which=onp)
-    return aggregate_linemap(lm, scene.mapping, conf.aggregate, depth_by_view)
+    lm = aggregate_linemap(lm, scene.mapping, conf.aggregate, depth_by_view)
+    return verify_tracks(lm, scene.mapping, conf.extract)
 
 
 def _depth_check(lm, scene, conf: MappingConfig, depth_by_view):
@@ -267,7 +269,8 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
         from ..lift import lift_linemap
 
         t = time.time()
-        lm = lift_linemap(scene.mapping, lines_h5, conf.lift)
+        # the lifted detections that a merge fitted together, only where they agree with the merged line
+        lm = verify_tracks(lift_linemap(scene.mapping, lines_h5, conf.lift), scene.mapping, conf.extract)
         timings["lift_s"] = time.time() - t
     else:
         lines_by_view = _lines_by_view(lines_h5, scene.mapping)
