@@ -190,7 +190,10 @@ def cmd_map(args):
     if kf:
         print(f"keyframes: {kf['n_keyframes']} of {kf['n_views']} mapping views")
     if len(lm):
-        print(f"supports: median {np.median(lm.supports[:, 0]):.0f} images, {np.median(lm.supports[:, 1]):.0f} 2D lines per line")
+        n0 = int((lm.supports[:, 0] == 0).sum())
+        print(f"supports (detections passing the paper's track test): median {np.median(lm.supports[:, 0]):.0f} images "
+              f"(mean {lm.supports[:, 0].mean():.1f}), {np.median(lm.supports[:, 1]):.0f} 2D lines per line; "
+              f"{n0} lines no image verifies")
     ps = lm.metadata.get("plane_stats")
     if ps:
         print(f"planes: {ps['n_planes']}, area-weighted median {ps.get('area_weighted_median_area_m2', float('nan')):.3f} m2 "
