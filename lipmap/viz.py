@@ -403,9 +403,10 @@ def support_colorbar(fig, mappable, axes, norm):
     cb = fig.colorbar(mappable, ax=list(axes), shrink=0.85, pad=0.01)
     ticks = [t for t in (1, 2, 3, 5, 10, 20, 50, 100, 200, 500, 1000) if t <= norm.vmax]
     cb.set_ticks(ticks)
-    cb.set_ticklabels([str(t) for t in ticks])
+    # a line no detection verifies (support 0) is drawn in the colour of 1: a log scale has no 0
+    cb.set_ticklabels(["0-1" if t == 1 else str(t) for t in ticks])
     cb.ax.minorticks_off()
-    cb.set_label("support (number of images)")
+    cb.set_label("support (images passing the track test)")
     return cb
 
 

@@ -153,3 +153,14 @@ def test_render_linemap_views_writes_both(tmp_path):
     # without a scene: the overview only
     paths = viz.render_linemap_views(LineMap(lines), None, tmp_path / "alone")
     assert [p.name for p in paths] == ["linemap.png"]
+
+
+def test_linemap_figure_colour_bar_names_the_unverified_lines():
+    """A line no detection verifies (support 0) shares the colour of support 1 on the log scale, and the bar says so."""
+    panel = rect([0, 0, 3.0], 1.0, 0.75)
+    lines = np.stack([panel, np.roll(panel, -1, axis=0)], 1)
+    tracks = [[], [("a.png", 0, np.zeros(4))], [("a.png", 1, np.zeros(4)), ("b.png", 0, np.zeros(4))], []]
+    fig = viz.linemap_figure(LineMap(lines, tracks))
+    bar = fig.axes[-1]
+    labels = [t.get_text() for t in bar.get_yticklabels()]
+    assert labels[0] == "0-1" and "2" in labels and "track test" in bar.get_ylabel()
