@@ -191,7 +191,7 @@ def cmd_map(args):
         print(f"keyframes: {kf['n_keyframes']} of {kf['n_views']} mapping views")
     if len(lm):
         n0 = int((lm.supports[:, 0] == 0).sum())
-        print(f"supports (detections passing the paper's track test): median {np.median(lm.supports[:, 0]):.0f} images "
+        print(f"supports (detections passing the track test): median {np.median(lm.supports[:, 0]):.0f} images "
               f"(mean {lm.supports[:, 0].mean():.1f}), {np.median(lm.supports[:, 1]):.0f} 2D lines per line; "
               f"{n0} lines no image verifies")
     ps = lm.metadata.get("plane_stats")

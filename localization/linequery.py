@@ -64,7 +64,7 @@ class LineQuery:
         self.edge_line = None if edge_line is None else np.asarray(edge_line, dtype=np.int64)
         self.caster = PlaneRaycaster(self.corners) if self.corners is not None else None
 
-    def scoring_lines(self, n: int, min_support: int = 1) -> np.ndarray:
+    def scoring_lines(self, n: int, min_support: int = 0) -> np.ndarray:
         """The ``n`` longest map lines seen in at least ``min_support`` mapping images (N, 2, 3), computed once
         (:func:`localization.hypotheses.scoring_lines`)."""
         from .hypotheses import scoring_lines

@@ -31,7 +31,7 @@ def test_map_lift_then_map_eval(synthetic_root, tmp_path, capsys):
     scene = ["--dataset", "synthetic", "--root", str(synthetic_root), "--scene", "room-s3"]
     assert main(["map", *scene, "--out", str(tmp_path / "m"), "--method", "lift"]) == 0
     out = capsys.readouterr().out
-    assert "lines ->" in out and "mapping time:" in out and "supports (detections passing the paper's track test): median" in out
+    assert "lines ->" in out and "mapping time:" in out and "supports (detections passing the track test): median" in out
     assert "lines no image verifies" in out
     assert "keyframes: 30 of 30 mapping views" in out  # the small room's views are 13-30 cm apart
     assert {"linemap.h5", "linemap.ply", "lines2d.h5", "linemap.html"} <= {p.name for p in (tmp_path / "m").iterdir()}
