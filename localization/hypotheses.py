@@ -30,7 +30,7 @@ class HypothesisConfig:
     max_point_error: float = 12.0  # px: point inliers of a hypothesis (as the point-only RANSAC)
     max_hypotheses: int = 60  # the hypotheses with the most point inliers are scored by lines
     n_map_lines: int = 1500  # the longest map lines score them
-    min_support: int = 0  # of those seen in at least this many mapping images (0: all, also those no image verifies)
+    min_support: int = 1  # of those seen in at least this many mapping images (default: leave out lines no image verifies)
     samples: int = 5  # per map line
     max_dist_px: float = 3.0  # a sample agrees within this of a detection of its direction
     angle_bins: int = 8  # direction bins over 180 deg; a detection also counts in the bin next to its angle

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lipmap import geometry as geo
+from lipmap import logger
 from lipmap.mapping.assign import PlaneRaycaster, best_edges, line_regions, pixel_rays_world, visible_lines
 
 
@@ -35,7 +36,9 @@ class LineQueryConfig:
     # few pixels off, a 1-px region can fall wholly on the far side of the edge and miss its plane.
     region_radius: float = 3.0
     occlusion_tol: float = 0.05  # m, projection method's visibility test against the planes
-    min_support: int = 0  # map lines seen in fewer mapping images are not queried (0: all, also those no image verifies)
+    # map lines seen in fewer mapping images (by the track test) are not queried; 0: all, also those no image verifies
+    # (leaving those out gains where queries are far from the mapping views; README: the query's lines)
+    min_support: int = 1
     one_to_one: bool = True  # a map line matches at most one query line (its best), as a point matches one keypoint
     min_margin: float = 6.0  # projection: drop a query line whose runner-up map line scores within this of its best (0: off)
     # projection: a runner-up within this (m, both endpoints to the best's 3D line, and 5 deg) is the same physical
@@ -87,8 +90,13 @@ class LineQuery:
 
     @classmethod
     def from_linemap(cls, linemap) -> "LineQuery":
+        """A map without any track (lines imported bare) has unknown supports, not zero: every line is queried."""
         planes = linemap.planes or {}
-        return cls(linemap.lines, planes.get("corners"), planes.get("edge_line"), linemap.supports)
+        supports = linemap.supports
+        if len(linemap) and not supports[:, 0].any():
+            logger.warning("The line map has no tracks, so no line's support is known: min_support is not applied.")
+            supports = None
+        return cls(linemap.lines, planes.get("corners"), planes.get("edge_line"), supports)
 
     def match(self, lines2d: np.ndarray, cam_from_world: np.ndarray, camera, conf: LineQueryConfig,
               visible: np.ndarray | None = None) -> dict:

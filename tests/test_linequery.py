@@ -70,6 +70,29 @@ def test_min_support_keeps_unverified_map_lines_out_of_the_query(method):
     m = lq.match(q, T, SMALL_CAMERA, LineQueryConfig(method=method, min_support=2))
     assert sorted(m["line_idx"]) == [0, 2, 3]  # line 1 is seen in one mapping image only
     assert sorted(lq.match(q, T, SMALL_CAMERA, LineQueryConfig(method=method))["line_idx"]) == [0, 1, 2, 3]
+    # by default a line no mapping image verifies (support 0) is left out; min_support 0 queries it too
+    supports[1] = 0
+    lq = LineQuery(lines, corners, edge_line, supports)
+    assert sorted(lq.match(q, T, SMALL_CAMERA, LineQueryConfig(method=method))["line_idx"]) == [0, 2, 3]
+    assert sorted(lq.match(q, T, SMALL_CAMERA, LineQueryConfig(method=method, min_support=0))["line_idx"]) == [0, 1, 2, 3]
+
+
+def test_a_map_without_tracks_queries_every_line(caplog):
+    from lipmap.linemap import LineMap
+
+    corners, views, lines, edge_line = _map()
+    T = views[1].cam_from_world
+    q = _query_lines(lines[:4], T)
+    bare = LineMap(lines, planes={"corners": corners, "edge_line": edge_line})  # e.g. lines imported without tracks
+    assert not bare.supports.any()
+    with caplog.at_level("WARNING", logger="lipmap"):
+        lq = LineQuery.from_linemap(bare)
+    assert "no tracks" in caplog.text
+    assert sorted(lq.match(q, T, SMALL_CAMERA, LineQueryConfig(method="projection"))["line_idx"]) == [0, 1, 2, 3]
+    tracked = LineMap(lines, [[("a.png", 0, q[0])]] + [[] for _ in range(len(lines) - 1)],
+                      planes={"corners": corners, "edge_line": edge_line})
+    m = LineQuery.from_linemap(tracked).match(q, T, SMALL_CAMERA, LineQueryConfig(method="projection"))
+    assert m["line_idx"].tolist() == [0]  # with tracks, the lines no image verifies stay out
 
 
 def test_one_to_one_keeps_the_best_query_line_of_each_map_line():
