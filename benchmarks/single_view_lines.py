@@ -23,28 +23,40 @@ import results  # noqa: E402
 GATES = ((0.01, 2.0), (0.02, 2.0), (0.03, 3.0), (0.05, 4.0), (0.1, 6.0))
 
 
-def nearest_detections(lines: np.ndarray, source: list, views, lines_by_view: dict, caster):
-    """Per (line, other view where it is visible): angle (rad) and max endpoint distance (px) to the detection that
-    overlaps it (> 0.2) and is nearest in max(angle / 0.01, distance / 2); inf where none overlaps."""
+def nearest_in_view(lines: np.ndarray, cand: np.ndarray, view, det: np.ndarray, caster):
+    """Of the lines ``cand`` (indices into ``lines`` (N, 2, 3)), those visible in ``view`` (inside the image, not hidden
+    by the planes: the track builder's own test), and per such line the angle (rad) and max endpoint distance (px) to
+    the detection of ``det`` (M, 4) that overlaps its projection (> 0.2) and is nearest in max(angle / 0.01,
+    distance / 2); inf where none overlaps."""
     from lipmap import geometry as geo
     from lipmap.mapping.assign import visible_lines
 
+    cand = np.asarray(cand, dtype=np.int64)
+    vis = cand[visible_lines(lines[cand], view.cam_from_world, view.camera, caster, 0.05)] if len(cand) else cand
+    if not len(vis) or not len(det):
+        return vis, np.full(len(vis), np.inf), np.full(len(vis), np.inf)
+    proj, _ = geo.project_segments(lines[vis], view.cam_from_world, view.camera)
+    with np.errstate(invalid="ignore"):
+        ov = geo.pairwise_overlap_ratio(proj, det) > 0.2
+        A = np.where(ov, geo.pairwise_angle_distance(proj, det), np.inf)
+        D = np.where(ov, geo.pairwise_perpendicular_distance(proj, det, "max"), np.inf)
+    j = np.argmin(np.maximum(A / 0.01, D / 2.0), 1)
+    return vis, A[np.arange(len(vis)), j], D[np.arange(len(vis)), j]
+
+
+def nearest_detections(lines: np.ndarray, source: list, views, lines_by_view: dict, caster):
+    """Per (line, other view where it is visible): :func:`nearest_in_view`'s angle and distance; a line is not looked
+    for in its ``source`` view."""
     ang, dist, n_vis = [], [], np.zeros(len(lines), int)
+    source = np.asarray(source, dtype=object)
     for v in views:
-        vis = [i for i in visible_lines(lines, v.cam_from_world, v.camera, caster, 0.05) if source[i] != v.name]
         det = np.asarray(lines_by_view.get(v.name, np.zeros((0, 4))), float)
-        if not vis or not len(det):
+        if not len(det):
             continue
-        vis = np.asarray(vis)
+        vis, a, d = nearest_in_view(lines, np.flatnonzero(source != v.name), v, det, caster)
         n_vis[vis] += 1
-        proj, _ = geo.project_segments(lines[vis], v.cam_from_world, v.camera)
-        with np.errstate(invalid="ignore"):
-            ov = geo.pairwise_overlap_ratio(proj, det) > 0.2
-            A = np.where(ov, geo.pairwise_angle_distance(proj, det), np.inf)
-            D = np.where(ov, geo.pairwise_perpendicular_distance(proj, det, "max"), np.inf)
-        j = np.argmin(np.maximum(A / 0.01, D / 2.0), 1)
-        ang.append(A[np.arange(len(vis)), j])
-        dist.append(D[np.arange(len(vis)), j])
+        ang.append(a)
+        dist.append(d)
     return np.concatenate(ang) if ang else np.zeros(0), np.concatenate(dist) if dist else np.zeros(0), n_vis
 
 
