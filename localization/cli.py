@@ -107,6 +107,12 @@ def eval_config(args):
                               map_method=args.method, points=args.points)
     if args.line_query:
         conf = replace(conf, line_query=replace(LineQueryConfig(), method=args.line_query))
+    if args.min_support is not None:
+        if args.min_support < 0:
+            raise InputError(f"--min-support takes a number of mapping images >= 0, got {args.min_support}")
+        hyp = replace(conf.line_rescue.hypotheses, min_support=args.min_support)
+        conf = replace(conf, line_query=replace(conf.line_query, min_support=args.min_support),
+                       line_rescue=replace(conf.line_rescue, hypotheses=hyp))
     if args.line_rescue is not None:
         if args.line_rescue < 0:
             raise InputError(f"--line-rescue takes a number of inliers >= 0, got {args.line_rescue}")
@@ -391,7 +397,7 @@ def _add_info_parser(sub):
 def _add_eval_parser(sub):
     from lipmap.datasets.synthetic import SYNTH_PRESETS
 
-    from .linequery import LINE_QUERY_METHODS
+    from .linequery import LINE_QUERY_METHODS, LineQueryConfig
     from .pipeline import LocalizationConfig
     from .points import confs as point_confs
 
@@ -405,6 +411,10 @@ def _add_eval_parser(sub):
     p.add_argument("--max-point-matches", type=int, default=None, help="seeded random subset of N 2D-3D point matches per query")
     _add_mapping_args(p, method_default=LocalizationConfig().map_method)
     p.add_argument("--line-query", default=None, choices=list(LINE_QUERY_METHODS))
+    p.add_argument("--min-support", type=int, default=None, metavar="N",
+                   help="map lines seen in fewer than N mapping images (by the track test) are left out of the line "
+                        f"query and the rescue (default {LineQueryConfig().min_support}: the lines no image verifies; "
+                        "0: every line)")
     p.add_argument("--line-rescue", type=int, default=None, metavar="N",
                    help="a query whose point-only pose has fewer than N inliers (or none) starts its lines from wide "
                         "gates around the P3P poses of its matches that the map lines agree with "

@@ -212,6 +212,17 @@ def test_eval_options_set_the_rescue():
     assert conf().line_rescue.hypotheses.upright and not conf("--no-vanishing-points").line_rescue.hypotheses.upright
     assert conf().max_line_step == (0.3, 5.0) and conf("--max-line-step", "0.15,3").max_line_step == (0.15, 3.0)
     assert conf("--max-line-step", "off").max_line_step == ()
+    # the lines no mapping image verifies are left out of the query and the rescue's scoring unless --min-support 0
+    assert conf().line_query.min_support == 1 and conf().line_rescue.hypotheses.min_support == 1
+    every = conf("--min-support", "0", "--line-query", "raycast")
+    assert every.line_query.min_support == 0 and every.line_rescue.hypotheses.min_support == 0
+    assert every.line_query.method == "raycast"
+
+
+def test_eval_bad_min_support(tmp_path, capsys):
+    assert main(["eval", "--dataset", "synthetic", "--out", str(tmp_path), "--min-support", "-1"]) == 2
+    assert "--min-support takes a number of mapping images >= 0" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
 
 
 def test_eval_bad_max_line_step(tmp_path, capsys):
