@@ -1,7 +1,7 @@
 """How often a 2D line detector finds a line again in the next mapping view, by the paper's track test.
 
     python benchmarks/line_repeatability.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
-        --scene redkitchen --out MAP_DIR [--detectors lsd,lsd-dense,edlines,fld] [--gaps 1,2,3]
+        --scene redkitchen --out MAP_DIR [--detectors lsd,lsd-dense,edlines,fld] [--gaps 1,2,3] [--label TEXT]
 
 The supports of a map (M2) count the mapping views whose detections pass the track builder's test (0.01 rad, 2 px,
 overlap 0.2) against a line; they can be no higher than the detector's repeatability at that test. This measures
@@ -167,6 +167,7 @@ def main(argv=None):
     ap.add_argument("--detectors", default="lsd,lsd-dense,lsd-long", help="comma-separated detector names")
     ap.add_argument("--gaps", default="1,2,3", help="compare each mapping view with the views this many places on")
     ap.add_argument("--tag", default="", help="suffix of the results file name")
+    ap.add_argument("--label", default="", help="added to each row's detector name (e.g. the poses the map was made with)")
     args = ap.parse_args(argv)
     gaps = sorted({int(g) for g in args.gaps.split(",")})
     if not gaps or gaps[0] < 1:
@@ -201,7 +202,7 @@ def main(argv=None):
              "paper_gate_by_length": {f"{lo}-{hi:g}": share(p, *GATES[0], (p["length"] >= lo) & (p["length"] < hi))
                                       for lo, hi in LENGTH_BINS}}
         figures[name] = f
-        rows.append([name, f"{f['detections_per_view']:.0f}", f"{f['median_length_px']:.0f}", f["pairs"],
+        rows.append([f"{name} ({args.label})" if args.label else name, f"{f['detections_per_view']:.0f}", f"{f['median_length_px']:.0f}", f["pairs"],
                      *(pct(v) for v in f["next_view"].values()),
                      *(pct(f["paper_gate_by_gap"][str(g)]) for g in gaps[1:]),
                      *(pct(v) for v in f["paper_gate_by_length"].values())])
