@@ -733,6 +733,9 @@ def run_eval(dataset: str, root, scenes, out, conf: LocalizationConfig, hloc_dir
     write_text_atomic(path, json.dumps(all_res, indent=1, default=float))
     notes = [f"Mapping: {conf.map_method} ({conf.mapping} preset); points: "
              + ("hloc files" if hloc_dir else f"built-in {conf.points} + {conf.retrieval} top-{conf.num_retrieved}")
-             + (f"; point matches limited to {conf.max_point_matches} per query (seed {conf.seed})" if conf.max_point_matches else "")]
+             + (f"; point matches limited to {conf.max_point_matches} per query (seed {conf.seed})" if conf.max_point_matches else ""),
+             f"Line query: {conf.line_query.method}, "
+             + (f"map lines seen in at least {conf.line_query.min_support} mapping image(s) by the track test"
+                if conf.line_query.min_support else "every map line")]
     write_text_atomic(out / "summary.md", ev.summary_markdown(all_res, dataset, pose_source, notes))
     return path

@@ -51,7 +51,9 @@ def test_eval_end_to_end(mini_root, tmp_path):
     scene_dir = tmp_path / "out" / "synthetic" / "room-s1"
     lines = (scene_dir / "results_point_line.txt").read_text().split("\n")
     assert len([l for l in lines if l.strip()]) == 6 and len(lines[0].split()) == 8
-    assert "room-s1" in (tmp_path / "out" / "synthetic" / "summary.md").read_text()
+    summary = (tmp_path / "out" / "synthetic" / "summary.md").read_text()
+    assert "room-s1" in summary
+    assert "Line query: projection, map lines seen in at least 1 mapping image(s) by the track test" in summary
 
 
 def test_bad_query_is_reported_and_others_kept(mini_root, tmp_path):
