@@ -94,7 +94,8 @@ class LineQuery:
         planes = linemap.planes or {}
         supports = linemap.supports
         if len(linemap) and not supports[:, 0].any():
-            logger.warning("The line map has no tracks, so no line's support is known: min_support is not applied.")
+            logger.warning("No line of the map has a track (imported without tracks, or none verified), so supports "
+                           "tell the lines nothing: min_support is not applied and every line is queried.")
             supports = None
         return cls(linemap.lines, planes.get("corners"), planes.get("edge_line"), supports)
 
