@@ -1,7 +1,7 @@
 """How often a 2D line detector finds a line again in the next mapping view, by the paper's track test.
 
     python benchmarks/line_repeatability.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
-        --scene redkitchen --out MAP_DIR [--detectors lsd,lsd-dense,edlines,fld] [--gaps 1,2,3] [--label TEXT]
+        --scene redkitchen --out MAP_DIR [--detectors lsd,lsd-dense,edlines,fld,LINES.h5] [--gaps 1,2,3] [--label TEXT]
 
 The supports of a map (M2) count the mapping views whose detections pass the track builder's test (0.01 rad, 2 px,
 overlap 0.2) against a line; they can be no higher than the detector's repeatability at that test. This measures
@@ -14,8 +14,9 @@ looked up. The table gives the share of such pairs with a detection within each 
 view and, at the paper's gate, for views 2 and 3 places on and by the source detection's length. The planes and the
 poses carry errors of their own, so the figures are a lower bound for the detector alone; they compare detectors
 on equal terms. ``edlines`` and ``fld`` (OpenCV's EdgeDrawing and FastLineDetector) need
-``pip install opencv-contrib-python-headless`` (the same OpenCV with the contrib modules); the others are
-:mod:`lipmap.lines2d` presets. Writes ``benchmarks/results/line-repeatability-<scene>.json`` and ``.png``.
+``pip install opencv-contrib-python-headless`` (the same OpenCV with the contrib modules); a name ending in ``.h5``
+is a file of lines made elsewhere (a learned detector's, in the ``lines2d.h5`` format ``lipmap-loc map --lines``
+writes); the others are :mod:`lipmap.lines2d` presets. Writes ``benchmarks/results/line-repeatability-<scene>.json`` and ``.png``.
 """
 from __future__ import annotations
 
@@ -53,18 +54,34 @@ def contrib_detector(name: str):
 
 
 def detector(name: str):
-    """``image -> (N, 4)`` for a :mod:`lipmap.lines2d` preset or an OpenCV contrib detector; every detector's lines
-    go through the same length filter (the preset's, or the default preset's 15 px at 640x480)."""
-    from lipmap.lines2d import confs, detect_lines_image, filter_lines, get_conf
+    """``(view, image) -> (N, 4)`` for a :mod:`lipmap.lines2d` preset, an OpenCV contrib detector, or an HDF5 file of
+    lines made elsewhere (``lines2d.h5`` as ``lipmap-loc map --lines`` imports them, e.g. DeepLSD's); the detectors'
+    lines go through the same length filter (the preset's, or the default preset's 15 px at 640x480)."""
+    from lipmap.lines2d import confs, detect_lines_image, filter_lines, get_conf, list_names, load_lines
 
     if name in confs:
         conf = get_conf(name)
-        return lambda image: detect_lines_image(image, conf)[0]
+        return lambda view, image: detect_lines_image(image, conf)[0]
+    if name.endswith((".h5", ".hdf5")):
+        path = Path(name)
+        if not path.is_file():
+            raise SystemExit(f"lines file {path} does not exist")
+        have, base = set(list_names(path)), get_conf("lsd")
+
+        def read(view, image):
+            if view.name not in have:
+                raise SystemExit(f"{path} has no lines for image {view.name}")
+            lines = load_lines(path, view.name)
+            cam = view.camera
+            return filter_lines(lines, np.zeros(len(lines)), base.min_length_for(cam.width, cam.height), base.max_lines)[0]
+
+        return read
     if name not in ("edlines", "fld"):
-        raise SystemExit(f"unknown detector {name!r}: choose from {', '.join([*confs, 'edlines', 'fld'])}")
+        raise SystemExit(f"unknown detector {name!r}: choose from {', '.join([*confs, 'edlines', 'fld'])} "
+                         "or give an HDF5 file of lines (.h5)")
     raw, base = contrib_detector(name), get_conf("lsd")
 
-    def detect(image):
+    def detect(view, image):
         lines = raw(image)
         h, w = image.shape
         return filter_lines(lines, np.zeros(len(lines)), base.min_length_for(w, h), base.max_lines)[0]
@@ -94,7 +111,7 @@ def measure(detect, views, images: dict, caster, gaps) -> dict:
     """Per gap: angle, distance of the nearest re-detection and the source's length (px) for every visible pair."""
     from lipmap import geometry as geo
 
-    by_view = {v.name: detect(images[v.name]) for v in views}
+    by_view = {v.name: np.asarray(detect(v, images[v.name]), dtype=np.float64).reshape(-1, 4) for v in views}
     out = {g: {"angle": [], "dist": [], "length": []} for g in gaps}
     for i, a in enumerate(views):
         det = by_view[a.name]

@@ -55,7 +55,7 @@ def test_detections_are_placed_on_the_planes_and_found_again_by_the_paper_gate()
     # view 1 finds the panel line exactly and the wall line turned by 0.04 rad
     det_b = np.concatenate([_project(on_panel[None], b), _rotated(_project(on_wall[None], b), 0.04)])
     dets = {a.name: det_a, b.name: det_b}
-    m = bench.measure(lambda name: dets[name], [a, b], {a.name: a.name, b.name: b.name}, caster, [1])
+    m = bench.measure(lambda view, image: dets[view.name], [a, b], {a.name: None, b.name: None}, caster, [1])
     p = m["pairs"][1]
     assert len(p["angle"]) == 2
     order = np.argsort(p["angle"])
@@ -69,3 +69,19 @@ def test_detections_are_placed_on_the_planes_and_found_again_by_the_paper_gate()
 def test_unknown_detector_names_the_choices():
     with pytest.raises(SystemExit, match="unknown detector 'sold2'.*lsd"):
         _bench().detector("sold2")
+
+
+def test_lines_from_a_file_are_read_per_view(tmp_path):
+    import h5py
+
+    corners, views = wall_scene()
+    path = tmp_path / "lines2d.h5"
+    seg = np.array([[10.0, 20.0, 200.0, 40.0]])
+    with h5py.File(path, "w") as f:
+        f.create_group(views[0].name).create_dataset("lines", data=seg)
+    read = _bench().detector(str(path))
+    np.testing.assert_allclose(read(views[0], None), seg)
+    with pytest.raises(SystemExit, match="has no lines for image v1"):
+        read(views[1], None)
+    with pytest.raises(SystemExit, match="does not exist"):
+        _bench().detector(str(tmp_path / "missing.h5"))
