@@ -7,6 +7,8 @@ A generated block in the README is
 
     <!-- results: NAME1 NAME2 ... -->
     ...table rows of NAME1, then NAME2 (same header), then one provenance line per file...
+
+(a ``localization_variants.py`` result's rows get a first column naming its run: scene, ground truth, map, matches)
     <!-- /results -->
 
 where each NAME is a file ``benchmarks/results/NAME.json`` written by a benchmark script, holding
@@ -42,11 +44,15 @@ def render_block(names: list[str]) -> str:
     for name in names:
         r = results.read(name)
         t, p = r["table"], r["provenance"]
+        head, body = t["header"], t["rows"]
+        if name.startswith("localization-variants-"):  # a block may pool several runs: name each on its first row
+            run = results.variants_run(r)
+            head, body = ["run", *head], [[run if i == 0 else "", *row] for i, row in enumerate(body)]
         if header is None:
-            header = t["header"]
-        elif t["header"] != header:
-            raise ValueError(f"{name}: its table header {t['header']} differs from {header}")
-        rows += t["rows"]
+            header = head
+        elif head != header:
+            raise ValueError(f"{name}: its table header {head} differs from {header}")
+        rows += body
         dirty = " (uncommitted changes)" if p.get("dirty") else ""
         notes.append(f"`{name}`: {p['date']}, commit {p['commit']}{dirty}, {_machine(p['machine'])}: `{p['command']}`")
     lines = [_row(header), _row(["---"] * len(header)), *(_row(r) for r in rows), ""]

@@ -100,3 +100,15 @@ def read(name: str) -> dict:
 
 def names(prefix: str = "") -> list[str]:
     return sorted(p.stem for p in RESULTS.glob(f"{prefix}*.json"))
+
+
+def variants_run(data: dict) -> str:
+    """What a ``localization_variants.py`` result measured, for its tables' ``run`` column: scene (ground truth), line
+    map, point matches per query and draws."""
+    import shlex
+
+    args = shlex.split(data["provenance"]["command"])
+    pose = args[args.index("--pose-source") + 1] if "--pose-source" in args[:-1] else "posetxt"
+    m, draws = str(data["matches"]), len(data.get("match_seeds") or [])
+    budget = "all matches" if m in ("0", "all", "None") else f"{m} matches, {draws} draws"
+    return f"{data['scene']} ({pose}), {data['method']}, {budget}"

@@ -48,3 +48,24 @@ def test_the_thread_environment_is_recorded_and_shown(monkeypatch):
     assert mod._machine(m).endswith("cores, OMP_WAIT_POLICY=PASSIVE")
     monkeypatch.delenv("OMP_WAIT_POLICY")
     assert "env" not in mod.results.machine() and mod._machine(mod.results.machine()).endswith(" cores")
+
+
+def test_localization_variants_rows_name_their_run(tmp_path, monkeypatch):
+    """A block may pool several variant runs (scenes, budgets): each run's first row names it."""
+    mod = _readme_tables()
+    prov = {"commit": "abc1234", "dirty": False, "date": "2026-12-01 10:00 UTC", "machine": {"cpu": "CPU", "cores": 2}}
+    table = {"header": ["variant", "x"], "rows": [["default", 1], ["other", 2]]}
+    runs = {
+        "localization-variants-a": {"scene": "redkitchen-heldout", "method": "lipmap", "matches": "5", "match_seeds": [0, 1, 2],
+                                    "command": "python benchmarks/localization_variants.py --scene redkitchen-heldout --pose-source sfm --matches 5"},
+        "localization-variants-b": {"scene": "redkitchen", "method": "lift", "matches": "0", "match_seeds": [0],
+                                    "command": "python benchmarks/localization_variants.py --scene redkitchen --matches 0"},
+    }
+    for name, r in runs.items():
+        data = {"provenance": {**prov, "command": r.pop("command")}, **r, "table": table}
+        (tmp_path / f"{name}.json").write_text(json.dumps(data))
+    monkeypatch.setattr(mod.results, "RESULTS", tmp_path)
+    out = mod.render("<!-- results: localization-variants-a localization-variants-b -->\n<!-- /results -->\n")
+    assert ("| run | variant | x |\n| --- | --- | --- |\n"
+            "| redkitchen-heldout (sfm), lipmap, 5 matches, 3 draws | default | 1 |\n|  | other | 2 |\n"
+            "| redkitchen (posetxt), lift, all matches | default | 1 |\n|  | other | 2 |\n") in out
