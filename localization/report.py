@@ -346,7 +346,8 @@ def _image_sections(out: Path, dataset: str, all_res: dict, runs: dict, root, re
     """The query-example and line-map sections, made together because both need each scene's line map;
     ``assets`` gets each scene's :class:`SceneAssets`."""
     md_q = ["## Query examples", "",
-            f"For the {n_examples} queries whose translation error improved most with lines, then the "
+            f"For the {n_examples} queries whose translation error improved most with lines (first those that "
+            "lines bring within 5 cm), then the "
             f"{n_examples} largest point+line translation errors: the query image with its detected 2D lines "
             "(blue) and the map's visible 3D lines projected (red) with the point-only pose (left) and the "
             "point+line pose (right). Well-aligned red and blue lines mean a good pose.", ""]

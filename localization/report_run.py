@@ -118,9 +118,10 @@ def query_lines_file(run: SceneRun) -> Path:
     return found[-1] if found else run.folder / "lines2d_query.h5"
 
 
-def select_examples(run: SceneRun, n: int = 3) -> list[tuple[str, int, str]]:
-    """The ``n`` largest translation improvements of point+line over point-only, then the ``n``
-    largest point+line translation errors among the rest; only queries with both poses.
+def select_examples(run: SceneRun, n: int = 3, good_cm: float = 5.0) -> list[tuple[str, int, str]]:
+    """The ``n`` largest translation improvements of point+line over point-only, first among the queries that
+    point+line puts within ``good_cm`` (else the largest are rescues of queries that fail either way, 5 m -> 1.4 m),
+    then the ``n`` largest point+line translation errors among the rest; only queries with both poses.
 
     Returns:
         ``[(kind, rank, query)]`` with kind "improved" or "worst", rank from 1.
@@ -131,7 +132,7 @@ def select_examples(run: SceneRun, n: int = 3) -> list[tuple[str, int, str]]:
         tp, tl = _num(rec.get("point", {}).get("t_cm")), _num(rec.get("point+line", {}).get("t_cm"))
         if p.get("point") is not None and p.get("point+line") is not None and math.isfinite(tp) and math.isfinite(tl):
             cand.append((q, tp, tl))
-    improved = [c for c in sorted(cand, key=lambda c: c[2] - c[1]) if c[1] > c[2]][:n]
+    improved = [c for c in sorted(cand, key=lambda c: (c[2] > good_cm, c[2] - c[1])) if c[1] > c[2]][:n]
     taken = {c[0] for c in improved}
     worst = sorted((c for c in cand if c[0] not in taken), key=lambda c: -c[2])[:n]
     return [("improved", i + 1, c[0]) for i, c in enumerate(improved)] + [("worst", i + 1, c[0]) for i, c in enumerate(worst)]

@@ -27,6 +27,20 @@ def test_journal_named_in_results(fake_run):
     assert rp.query_lines_file(run) == run.folder / "lines2d_query-0123abcd.h5"
 
 
+def test_improved_examples_show_queries_lines_bring_within_5_cm_first(tmp_path):
+    from localization.report_run import SceneRun, select_examples
+
+    errs = {"a": (520.0, 140.0), "b": (30.0, 1.0), "c": (8.0, 2.0), "d": (3.0, 4.0), "e": (900.0, 900.0)}
+    run = SceneRun("s", tmp_path, {"queries": {q: {"point": {"t_cm": p}, "point+line": {"t_cm": pl}}
+                                               for q, (p, pl) in errs.items()}},
+                   poses={q: {"point": np.eye(4), "point+line": np.eye(4)} for q in errs})
+    # b and c end within 5 cm; a gains the most centimetres but still fails
+    assert select_examples(run, 3) == [("improved", 1, "b"), ("improved", 2, "c"), ("improved", 3, "a"),
+                                       ("worst", 1, "e"), ("worst", 2, "d")]
+    assert select_examples(run, 1)[0] == ("improved", 1, "b")
+    assert select_examples(run, 1, good_cm=0.5)[0] == ("improved", 1, "a")  # none within: the largest gain
+
+
 def test_write_report(fake_run):
     out, root = fake_run["out"], fake_run["root"]
     path = rp.write_report(out, "7scenes", root=root)
