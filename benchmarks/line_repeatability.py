@@ -57,7 +57,7 @@ def detector(name: str):
     """``(view, image) -> (N, 4)`` for a :mod:`lipmap.lines2d` preset, an OpenCV contrib detector, or an HDF5 file of
     lines made elsewhere (``lines2d.h5`` as ``lipmap-loc map --lines`` imports them, e.g. DeepLSD's); the detectors'
     lines go through the same length filter (the preset's, or the default preset's 15 px at 640x480)."""
-    from lipmap.lines2d import confs, detect_lines_image, filter_lines, get_conf, list_names, load_lines
+    from lipmap.lines2d import confs, detect_lines_image, get_conf, list_names, load_lines
 
     if name in confs:
         conf = get_conf(name)
@@ -66,27 +66,27 @@ def detector(name: str):
         path = Path(name)
         if not path.is_file():
             raise SystemExit(f"lines file {path} does not exist")
-        have, base = set(list_names(path)), get_conf("lsd")
+        have = set(list_names(path))
 
         def read(view, image):
             if view.name not in have:
                 raise SystemExit(f"{path} has no lines for image {view.name}")
-            lines = load_lines(path, view.name)
-            cam = view.camera
-            return filter_lines(lines, np.zeros(len(lines)), base.min_length_for(cam.width, cam.height), base.max_lines)[0]
+            return length_filter(load_lines(path, view.name), view.camera.width, view.camera.height)
 
         return read
     if name not in ("edlines", "fld"):
         raise SystemExit(f"unknown detector {name!r}: choose from {', '.join([*confs, 'edlines', 'fld'])} "
                          "or give an HDF5 file of lines (.h5)")
-    raw, base = contrib_detector(name), get_conf("lsd")
+    raw = contrib_detector(name)
+    return lambda view, image: length_filter(raw(image), image.shape[1], image.shape[0])
 
-    def detect(view, image):
-        lines = raw(image)
-        h, w = image.shape
-        return filter_lines(lines, np.zeros(len(lines)), base.min_length_for(w, h), base.max_lines)[0]
 
-    return detect
+def length_filter(lines: np.ndarray, width: int, height: int) -> np.ndarray:
+    """The default LSD preset's length filter and cap, for lines (N, 4) of other detectors."""
+    from lipmap.lines2d import filter_lines, get_conf
+
+    base = get_conf("lsd")
+    return filter_lines(lines, np.zeros(len(lines)), base.min_length_for(width, height), base.max_lines)[0]
 
 
 def lift_to_planes(det: np.ndarray, view, caster, n: int = 5, tol: float = 0.01):
@@ -118,7 +118,7 @@ def measure(detect, views, images: dict, caster, gaps) -> dict:
         if not len(det):
             continue
         segs, ok = lift_to_planes(det, a, caster)
-        segs, length = segs[ok], np.hypot(det[ok, 2] - det[ok, 0], det[ok, 3] - det[ok, 1])
+        segs, length = segs[ok], geo.segment_lengths(det[ok])
         for g in gaps:
             if i + g >= len(views) or not len(segs):
                 continue
@@ -132,7 +132,7 @@ def measure(detect, views, images: dict, caster, gaps) -> dict:
             out[g]["dist"].append(dist)
             out[g]["length"].append(length[idx])
     n_det = np.array([len(x) for x in by_view.values()])
-    lengths = np.concatenate([np.hypot(x[:, 2] - x[:, 0], x[:, 3] - x[:, 1]) for x in by_view.values()])
+    lengths = np.concatenate([geo.segment_lengths(x) for x in by_view.values()])
     pairs = {g: {k: np.concatenate(v) if v else np.zeros(0) for k, v in d.items()} for g, d in out.items()}
     return {"detections_per_view": float(n_det.mean()), "median_length_px": float(np.median(lengths)),
             "pairs": pairs}
