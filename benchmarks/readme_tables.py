@@ -1,9 +1,9 @@
-"""Regenerate the README's tables from ``benchmarks/results/*.json`` (the figures' one source).
+"""Regenerate the tables of the README and of ``docs/*.md`` from ``benchmarks/results/*.json`` (the figures' one source).
 
-    python benchmarks/readme_tables.py           # rewrite README.md in place
-    python benchmarks/readme_tables.py --check   # exit 1 if README.md is out of date (the tests run this)
+    python benchmarks/readme_tables.py           # rewrite README.md and docs/*.md in place
+    python benchmarks/readme_tables.py --check   # exit 1 if one of them is out of date (the tests run this)
 
-A generated block in the README is
+A generated block in one of those files is
 
     <!-- results: NAME1 NAME2 ... -->
     ...table rows of NAME1, then NAME2 (same header), then one provenance line per file...
@@ -25,6 +25,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import results  # noqa: E402
 
 README = results.REPO / "README.md"
+DOCS = results.REPO / "docs"
+
+
+def documents() -> list[Path]:
+    """The files whose tables are generated: the README (headline tables) and docs/*.md (the measurements behind
+    the defaults)."""
+    return [README, *sorted(DOCS.glob("*.md"))]
 BLOCK = re.compile(r"(<!-- results: ([^>]*?) -->\n)(.*?)(<!-- /results -->)", re.S)
 
 
@@ -66,17 +73,22 @@ def render(text: str) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--check", action="store_true", help="only check that README.md is up to date")
+    ap.add_argument("--check", action="store_true", help="only check that the files are up to date")
     args = ap.parse_args(argv)
-    text = README.read_text()
-    new = render(text)
-    if args.check:
-        if new != text:
-            print("README.md tables differ from benchmarks/results/: run python benchmarks/readme_tables.py")
-            return 1
-        return 0
-    README.write_text(new)
-    print(f"{README}: {len(BLOCK.findall(text))} generated blocks")
+    stale = []
+    for path in documents():
+        text = path.read_text()
+        new = render(text)
+        if new == text:
+            continue
+        stale.append(path)
+        if not args.check:
+            path.write_text(new)
+            print(f"{path}: {len(BLOCK.findall(text))} generated blocks")
+    if args.check and stale:
+        names = ", ".join(str(p.relative_to(results.REPO)) for p in stale)
+        print(f"tables differ from benchmarks/results/ in {names}: run python benchmarks/readme_tables.py")
+        return 1
     return 0
 
 

@@ -1,6 +1,6 @@
 """The one home of benchmark figures: each benchmark script writes its measurements to
-``benchmarks/results/<name>.json`` with their provenance (command, commit, machine, date); the README's
-tables are generated from these files by ``benchmarks/readme_tables.py``.
+``benchmarks/results/<name>.json`` with their provenance (command, commit, machine, date); the tables of the
+README and docs/*.md are generated from these files by ``benchmarks/readme_tables.py``.
 """
 from __future__ import annotations
 

@@ -1,6 +1,7 @@
 """The README's tables are generated from benchmarks/results/ (one source per figure): they must agree, and
 every results file must say how it was made."""
 import json
+from pathlib import Path
 
 from conftest import REPO, benchmark_module
 
@@ -11,10 +12,49 @@ def _readme_tables():
 
 def test_readme_tables_are_generated_from_the_results():
     mod = _readme_tables()
-    text = (REPO / "README.md").read_text()
-    blocks = mod.BLOCK.findall(text)
-    assert blocks, "the README has no generated table"
-    assert mod.render(text) == text, "README.md is out of date: run python benchmarks/readme_tables.py"
+    docs = mod.documents()
+    assert docs[0] == REPO / "README.md" and {"localization.md", "mapping.md", "performance.md"} <= {d.name for d in docs}
+    assert mod.BLOCK.findall(docs[0].read_text()), "the README has no generated table"
+    for path in docs:
+        text = path.read_text()
+        assert mod.render(text) == text, f"{path.name} is out of date: run python benchmarks/readme_tables.py"
+
+
+def test_every_result_file_has_a_place_in_the_documents():
+    """A results file no document shows or names is a figure without a reader (benchmarks/results is the figures'
+    one home, shown in the README or docs/); the runs a shown CDF plot reads count through it."""
+    mod = _readme_tables()
+    texts = [d.read_text() for d in mod.documents()]
+    shown = {n for text in texts for names in mod.BLOCK.findall(text) for n in names[1].split()}
+    for name in [n for n in shown if n.startswith("localization-cdf-")]:
+        for curve in json.loads((REPO / "benchmarks" / "results" / f"{name}.json").read_text())["curves"]:
+            shown |= {Path(part.split(":")[0]).stem for part in curve.split("=", 1)[1].split("+")}
+    orphans = sorted(f.stem for f in (REPO / "benchmarks" / "results").glob("*.json")
+                     if f.stem not in shown and not any(f.stem in text for text in texts))
+    assert not orphans, f"results no document shows: {orphans}"
+
+
+def test_document_links_resolve():
+    """The README sends readers to docs/ for the measurements behind each default: every relative link must exist,
+    and a link to a section (``file.md#anchor``) must name one of that file's headings (GitHub's anchors)."""
+    import re
+
+    def anchors(path):
+        heads = [line.lstrip("#").strip() for line in path.read_text().splitlines() if line.startswith("#")]
+        return {re.sub(r"[^a-z0-9 \-]", "", h.lower()).replace(" ", "-") for h in heads}
+
+    mod = _readme_tables()
+    n_sections = 0
+    for path in mod.documents():
+        for target, anchor in re.findall(r"\]\(([^)#\s]*)(?:#([^)\s]+))?\)", path.read_text()):
+            if "://" in target:
+                continue
+            dest = path.parent / target if target else path
+            assert dest.exists(), f"{path.name} links to {target}, which does not exist"
+            if anchor and dest.suffix == ".md":
+                n_sections += 1
+                assert anchor in anchors(dest), f"{path.name} links to {target}#{anchor}: no such heading"
+    assert n_sections, "no section links checked"
 
 
 def test_every_result_records_command_commit_machine_and_date():

@@ -26,7 +26,7 @@ On a shared machine, a busy core makes torch's 2-thread OpenMP pool spin: one me
 from 40 ms to 3.3 s. ``OMP_WAIT_POLICY=PASSIVE`` kept it at 61 ms under the same load.
 
 Results go to ``benchmarks/results/perf-raster.json`` (with command, commit, machine and date); the
-README's renderer figures are generated from there.
+docs/performance.md's renderer figures are generated from there.
 """
 from __future__ import annotations
 
