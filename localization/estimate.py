@@ -139,7 +139,7 @@ class PointLinePoseConfig:
 
     ``max_line_error`` is PoseLib's ``RansacOptions.max_epipolar_error``: the line inlier threshold,
     in pixels, on the distance of the projected 3D endpoints to the 2D line (PoseLib's default, 1 px,
-    is tighter than LSD's endpoint noise on real images; chosen by measurement, see the README).
+    is tighter than LSD's endpoint noise on real images; chosen by measurement, see docs/localization.md).
     """
 
     max_reproj_error: float = 12.0  # px, points (as the point-only pose; a rescued query uses LineRescueConfig's)
@@ -147,7 +147,7 @@ class PointLinePoseConfig:
     min_lines: int = 3  # fewer line matches -> keep the point-only pose
     seed: int = 0
     # from a pose with hundreds of point inliers RANSAC is done long before 100 samples: 20 costs nothing in accuracy
-    # and saves a third of the narrowing rounds' PnPL time (README, `-minit` variants)
+    # and saves a third of the narrowing rounds' PnPL time (docs/localization.md, `-minit` variants)
     min_iterations: int = 20
     max_iterations: int = 10_000
     success_prob: float = 0.9999

@@ -45,7 +45,7 @@ class HypothesisConfig:
     # two-point poses with the query's strongest vanishing points aligned to the map's dominant line directions
     # (module docstring): a pose from two right matches where P3P needs three
     upright: bool = True
-    vp_count: int = 2  # the query's strongest vanishing points tried (the first is usually right, README)
+    vp_count: int = 2  # the query's strongest vanishing points tried (the first is usually right, docs/localization.md)
     map_directions: int = 3  # the map's dominant line directions each is aligned with (both signs)
     vp_tol_deg: float = 1.5  # a query line points at a vanishing point within this
     vp_min_length_px: float = 30.0  # shorter query lines do not vote for vanishing points

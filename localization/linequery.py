@@ -37,13 +37,13 @@ class LineQueryConfig:
     region_radius: float = 3.0
     occlusion_tol: float = 0.05  # m, projection method's visibility test against the planes
     # map lines seen in fewer mapping images (by the track test) are not queried; 0: all, also those no image verifies
-    # (leaving those out gains where queries are far from the mapping views; README: the query's lines)
+    # (leaving those out gains where queries are far from the mapping views; docs/mapping.md, "The query's lines")
     min_support: int = 1
     one_to_one: bool = True  # a map line matches at most one query line (its best), as a point matches one keypoint
     min_margin: float = 6.0  # projection: drop a query line whose runner-up map line scores within this of its best (0: off)
     # projection: a runner-up within this (m, both endpoints to the best's 3D line, and 5 deg) is the same physical
     # line mapped twice (neighbouring patch edges, an edge and an on-plane line), so it does not make the match
-    # ambiguous (0: every runner-up counts; README, `-dup` variants)
+    # ambiguous (0: every runner-up counts; docs/localization.md, `-dup` variants)
     margin_dup_3d: float = 0.03
     # projection: keep each query line's k best map lines (k > 1 turns the margin off: RANSAC picks among them)
     max_candidates: int = 1

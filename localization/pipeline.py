@@ -66,7 +66,7 @@ class LineRescueConfig:
     # P3P poses of the point matches that the most map lines agree with, as starts (localization.hypotheses)
     hypotheses: HypothesisConfig = field(default_factory=HypothesisConfig)
     # (px, deg[, candidates]) per stage: the first from every prior, the next from the best pose; the second bridges
-    # the wide gate and the 8 px of the narrowing rounds, which a pose 5-10 cm off missed (README, `-sweep2`
+    # the wide gate and the 8 px of the narrowing rounds, which a pose 5-10 cm off missed (docs/localization.md, `-sweep2`
     # variants). From that pose each query line's nearest map line is enough: 20 % less time (`-speed2`)
     gates: tuple = ((30.0, 5.0), (15.0, 3.0, 1))
     candidates: int = 3  # per query line, in a stage that does not name its own
@@ -78,12 +78,12 @@ class LineRescueConfig:
     # while with hundreds 6 px costs accuracy (held-out, all matches: 2.51 cm against 1.96)
     max_point_error: float = 6.0
     # starts this close to an earlier one (and same_pose_deg) are skipped: within the wide gate they find the same
-    # lines (held-out, 10 matches: 15 % less time than at 3 cm / 1 deg, same accuracy; README, `-speed2` variants)
+    # lines (held-out, 10 matches: 15 % less time than at 3 cm / 1 deg, same accuracy; docs/localization.md, `-speed2` variants)
     same_pose_m: float = 0.10
     same_pose_deg: float = 3.0
     # "ransac": each start's candidates go through PoseLib's PnPL RANSAC, and the later ``gates`` refine the best pose;
     # "refine": each start goes through every stage of ``refine_gates`` as a robust refinement (Cauchy, scale
-    # ``refine_scale`` x the gate) of its nearest candidates, without RANSAC: half the time, a higher median (README)
+    # ``refine_scale`` x the gate) of its nearest candidates, without RANSAC: half the time, a higher median (docs/localization.md)
     solver: str = "ransac"
     refine_gates: tuple = ((30.0, 5.0, 1), (15.0, 3.0, 1), (8.0, 3.0, 1))
     refine_scale: float = 0.25
@@ -107,11 +107,11 @@ class LocalizationConfig:
     line_rescue: LineRescueConfig = field(default_factory=LineRescueConfig)
     # (m, deg): a narrowing round whose pose moves farther than this from the pose it started from is not taken (the
     # rounds refine a pose; a RANSAC jump is a different solution that few right matches support). () = off.
-    # Held-out split, 5 matches, 20 draws: 14.73 cm median against 15.23 without (README, `-step` variants)
+    # Held-out split, 5 matches, 20 draws: 14.73 cm median against 15.23 without (docs/localization.md, `-step` variants)
     max_line_step: tuple = (0.3, 5.0)
     mapping: str = "fast"  # lipmap.mapping.pipeline preset
     # the LiP-Map map: with scarce points it localizes better than lift's on both mini scenes and the held-out split
-    # (lift's is ahead on the synthetic room; README, benchmarks/results)
+    # (lift's is ahead on the synthetic room; README, docs/localization.md)
     map_method: str = "lipmap"
 
     def digest(self) -> str:
