@@ -40,6 +40,10 @@ class LRU:
     def __len__(self) -> int:
         return len(self._items)
 
+    def clear(self) -> None:
+        """Drop every entry (the counts stay)."""
+        self._items.clear()
+
     def stats(self) -> dict:
         return {"capacity": self.capacity, "hits": self.hits, "misses": self.misses}
 

@@ -97,6 +97,30 @@ def test_source_digest_follows_the_code_it_covers_only(tmp_path):
     assert source_digest([pkg], only) != d0
 
 
+def test_source_digest_ignores_comments_blank_lines_and_docstrings(tmp_path):
+    """Editing prose in the code keeps the artifacts (a full scene's planes take hours); editing code does not."""
+    from lipmap.artifacts import source_digest
+
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    f = pkg / "a.py"
+    f.write_text('"""Module doc."""\n\n\ndef f(x):\n    """Doc."""\n    return x + 1  # why\n')
+    d0 = source_digest([pkg])
+    f.write_text('"""Another module doc,\nover two lines."""\n# a comment\n\ndef f(x):\n    """Other doc."""\n\n'
+                 '    return x + 1  # another why\n')
+    assert source_digest([pkg]) == d0
+    for code in ('def f(x):\n    return x + 2\n',                        # a constant
+                 'def f(x):\n    """Doc."""\n    return x + 1\nS = "data"\n',  # a string that is data
+                 'def f(x):\n    "Doc."\n    return x - 1\n',              # an operator
+                 'def f(x):\n    return (x\n            + 1)\nf(1)\n'):       # a statement
+        f.write_text(code)
+        assert source_digest([pkg]) != d0, code
+    f.write_text("def f(x):\n    return x + 1\n")
+    assert source_digest([pkg]) == d0
+    f.write_text("def f(:\n")  # does not tokenize: taken byte for byte, still a digest
+    assert len(source_digest([pkg])) == 12
+
+
 def test_source_digest_entries_may_name_files_in_folders(tmp_path):
     from lipmap.artifacts import source_digest
 

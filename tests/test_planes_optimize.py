@@ -2,6 +2,8 @@
 and the end-to-end quality figures (synthetic; real RedKitchen when ../shared/data is there)."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -213,6 +215,16 @@ def test_fine_iterations_train_the_last_steps_at_full_resolution(synthetic_root)
     assert [s[0] for s in seen] == list(range(6))
     assert [s[1] for s in seen] == [(H // 2, W // 2)] * 4 + [(H, W)] * 2
     assert [s[2] for s in seen] == [W // 2] * 4 + [W] * 2
+
+    # the coarse targets are dropped when the fine steps begin (they are not used again); without fine steps they stay
+    from lipmap.planes.optimize import TargetStore
+
+    store = TargetStore(views, conf)
+    optimize_planes(store, noisy_wall_planes(), conf)
+    assert len(store._lru) == 0 and store.stats()["misses"] >= 1
+    store = TargetStore(views, replace(conf, fine_iterations=0))
+    optimize_planes(store, noisy_wall_planes(), replace(conf, fine_iterations=0))
+    assert len(store._lru) == len(views)
 
     with pytest.raises(InputError, match="fine_iterations"):
         optimize_planes(prepare_targets(_frames(views), conf), noisy_wall_planes(), conf)

@@ -129,7 +129,7 @@ def _fast_lines() -> PlaneOptConfig:
         restructure_every=50,  # the 50-view mini's epoch, where the threshold was chosen, for fewer views
         init=replace(fast.init, n_planes=6000),  # more edges to align with the detected lines
         # the last quarter at twice the resolution (7-Scenes: the camera's): edges settle on the pixels held-out
-        # queries see (SfM pGT, 5 matches: 32 % within 2 cm against 28; README "Training resolution"), ~80 s on 2 cores
+        # queries see (SfM pGT, 5 matches: 32 % within 2 cm against 28; docs/mapping.md, "Training resolution"), ~80 s on 2 cores
         fine_iterations=900,
     )
 
@@ -208,6 +208,10 @@ class TargetStore:
 
     def stats(self) -> dict:
         return self._lru.stats()
+
+    def release(self) -> None:
+        """Drop the cached targets (they are read again on use): the coarse ones once the fine phase begins."""
+        self._lru.clear()
 
 
 def plane_loss(render: RenderOutput, target: ViewTarget, conf: PlaneOptConfig) -> Optional[tuple]:
@@ -597,6 +601,8 @@ def optimize_planes(
     stats = _EpochStats.zeros(len(params[0]), dev)
     for epoch in range(sched.n_epochs):
         for vi in rng.permutation(len(targets))[: sched.max_iters - it]:
+            if it == fine_from and isinstance(targets, TargetStore):
+                targets.release()  # the coarse targets are not used again: up to cache_views of them held
             total = _train_view(params, opt, (fine if it >= fine_from else targets)[vi], it, sched, extra_loss, stats)
             it += 1
             visited[vi] = True
