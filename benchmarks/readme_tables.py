@@ -26,13 +26,13 @@ import results  # noqa: E402
 
 README = results.REPO / "README.md"
 DOCS = results.REPO / "docs"
+BLOCK = re.compile(r"(<!-- results: ([^>]*?) -->\n)(.*?)(<!-- /results -->)", re.S)
 
 
 def documents() -> list[Path]:
     """The files whose tables are generated: the README (headline tables) and docs/*.md (the measurements behind
     the defaults)."""
     return [README, *sorted(DOCS.glob("*.md"))]
-BLOCK = re.compile(r"(<!-- results: ([^>]*?) -->\n)(.*?)(<!-- /results -->)", re.S)
 
 
 def _row(cells) -> str:

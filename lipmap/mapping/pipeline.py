@@ -58,10 +58,12 @@ class MappingConfig:
     lift: str = "lift-merge-loose"  # lipmap.lift preset: method "lift", and the on-plane lines of "lipmap"
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)  # the views a map is built from
     # every line refined against the mapping views that see it, then tracked again: a plane's edge fits its detections
-    # only as well as the plane fits the depth, an on-plane line carries one view's depth (docs/mapping.md, "Every line refined")
+    # only as well as the plane fits the depth, an on-plane line carries one view's depth
+    # (docs/mapping.md, "Every line refined")
     refine: RefineConfig = field(default_factory=lambda: RefineConfig(enabled=True, lines="all"))
     # lines that share detections merged, each spanning its track's detections (ours; lipmap/mapping/aggregate.py);
-    # off: the mapping metrics gain and the weak queries of the held-out split lose (docs/mapping.md, "One line per physical line")
+    # off: the mapping metrics gain and the weak queries of the held-out split lose
+    # (docs/mapping.md, "One line per physical line")
     aggregate: AggregateConfig = field(default_factory=AggregateConfig)
     seed: int = 0
 

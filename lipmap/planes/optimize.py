@@ -129,7 +129,8 @@ def _fast_lines() -> PlaneOptConfig:
         restructure_every=50,  # the 50-view mini's epoch, where the threshold was chosen, for fewer views
         init=replace(fast.init, n_planes=6000),  # more edges to align with the detected lines
         # the last quarter at twice the resolution (7-Scenes: the camera's): edges settle on the pixels held-out
-        # queries see (SfM pGT, 5 matches: 32 % within 2 cm against 28; docs/mapping.md, "Training resolution"), ~80 s on 2 cores
+        # queries see (SfM pGT, 5 matches: 32 % within 2 cm against 28; docs/mapping.md, "Training resolution"),
+        # ~80 s on 2 cores
         fine_iterations=900,
     )
 
