@@ -14,8 +14,10 @@ atomic write as the data, see :meth:`Stamp.h5_attrs`); other files and folders i
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import shutil
+import tokenize
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -106,9 +108,6 @@ def code_tokens(source: bytes) -> bytes:
     """What of a Python file can change what it does: its tokens without comments, blank lines and docstrings
     (a string that is a statement of its own), so that editing prose does not discard artifacts that took hours.
     A file that does not tokenize is taken byte for byte."""
-    import io
-    import tokenize
-
     skip = {tokenize.COMMENT, tokenize.NL, tokenize.ENCODING}
     try:
         toks = [t for t in tokenize.tokenize(io.BytesIO(source).readline) if t.type not in skip]

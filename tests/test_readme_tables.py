@@ -1,6 +1,7 @@
 """The README's tables are generated from benchmarks/results/ (one source per figure): they must agree, and
 every results file must say how it was made."""
 import json
+import re
 from pathlib import Path
 
 from conftest import REPO, benchmark_module
@@ -37,8 +38,6 @@ def test_every_result_file_has_a_place_in_the_documents():
 def test_document_links_resolve():
     """The README sends readers to docs/ for the measurements behind each default: every relative link must exist,
     and a link to a section (``file.md#anchor``) must name one of that file's headings (GitHub's anchors)."""
-    import re
-
     def anchors(path):
         heads = [line.lstrip("#").strip() for line in path.read_text().splitlines() if line.startswith("#")]
         return {re.sub(r"[^a-z0-9 \-]", "", h.lower()).replace(" ", "-") for h in heads}
