@@ -81,6 +81,7 @@ def main(argv=None):
     ap.add_argument("--label", default=None)
     ap.add_argument("--tag", default="")
     args = ap.parse_args(argv)
+    results.require_clean()  # before the run: figures from a dirty tree reproduce from no commit
     rows, runs = [], {}
     seeds = [int(s) for s in args.match_seeds.split(",")]
     for m in args.matches.split(","):

@@ -93,6 +93,7 @@ def main(argv=None):
                     help="overrides of the map's settings, e.g. '{\"refine\": {\"enabled\": true}}' (default: the preset's)")
     ap.add_argument("variants", nargs="+", help="NAME=JSON overrides of LocalizationConfig ('{}' for the defaults)")
     args = ap.parse_args(argv)
+    results.require_clean()  # before the run: figures from a dirty tree reproduce from no commit
 
     scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source)
     scene_dir = args.out / args.dataset / args.scene

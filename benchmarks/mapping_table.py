@@ -64,6 +64,7 @@ def main(argv=None):
     ap.add_argument("--tag", default="", help="suffix of the results file name (e.g. noisy-depth)")
     ap.add_argument("--pose-source", default="posetxt", help="7-Scenes poses: posetxt | dslam | sfm")
     args = ap.parse_args(argv)
+    results.require_clean()  # before the run: figures from a dirty tree reproduce from no commit
     kw = {} if args.pose_source == "posetxt" else {"pose_source": args.pose_source}
     scene = load_scene(args.dataset, args.root, args.scene, **kw)
     gt_source = scene_ground_truth(scene)

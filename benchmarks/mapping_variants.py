@@ -60,6 +60,7 @@ def main(argv=None):
     ap.add_argument("--tag", default="", help="suffix of the results file, so that another question keeps its own table")
     ap.add_argument("variants", nargs="+", help="NAME=JSON overrides of the preset ('{}' for the preset itself)")
     args = ap.parse_args(argv)
+    results.require_clean()  # before the run: figures from a dirty tree reproduce from no commit
     scene = load_scene(args.dataset, args.root, args.scene)
     gt = load_ground_truth(scene_ground_truth(scene))
     depth = depth_maps(scene.mapping)

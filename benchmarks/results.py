@@ -73,6 +73,48 @@ def machine() -> dict:
     return out
 
 
+# placeholders for the folders of one machine in a recorded command: the option names what the folder holds
+_PLACEHOLDERS = {"--root": "DATA", "--out": "OUT"}
+
+
+def portable_path(path: str, placeholder: str = "WORK", keep: int = 1) -> str:
+    """``path`` relative to the repository when in it or in the shared data beside it, else ``placeholder`` plus its
+    last ``keep`` components (a folder of this machine means nothing elsewhere)."""
+    p = Path(path)
+    for base, prefix in ((REPO, ""), (REPO.parent / "shared", "../shared/")):
+        try:
+            rel = p.resolve().relative_to(base.resolve()).as_posix()
+            return prefix + rel if rel != "." else (prefix.rstrip("/") or ".")
+        except ValueError:
+            continue
+    return "/".join([placeholder, *p.parts[-keep:]])
+
+
+def _portable_values(obj):
+    """``obj`` with every absolute path among its strings made portable (:func:`portable_path`)."""
+    if isinstance(obj, dict):
+        return {k: _portable_values(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_portable_values(v) for v in obj]
+    if isinstance(obj, str) and obj.startswith("/") and " " not in obj and "\n" not in obj:
+        return portable_path(obj, keep=3)
+    return obj
+
+
+def portable_args(args: list) -> list:
+    """``args`` with this machine's folders written portably: paths in the repository or the shared data beside it
+    relative to the repository, any other absolute path as DATA/, OUT/ or WORK/ plus its last component."""
+    import re
+
+    out = []
+    for i, a in enumerate(args):
+        opt = a.partition("=")[0] if a.startswith("--") else (args[i - 1] if i else "")
+        name = _PLACEHOLDERS.get(opt, "WORK")
+        # an absolute path alone, after --opt=, or in a list of name=path or a,b values
+        out.append(re.sub(r"(^|[=,])(/[^=,\s]+)", lambda m: m.group(1) + portable_path(m.group(2), name), a))
+    return out
+
+
 def provenance(argv=None) -> dict:
     argv = sys.argv if argv is None else argv
     script = Path(argv[0])
@@ -80,15 +122,37 @@ def provenance(argv=None) -> dict:
         script = script.resolve().relative_to(REPO)
     except ValueError:
         pass
-    return {"command": "python " + " ".join(shlex.quote(a) for a in [str(script), *argv[1:]]),
-            "commit": _git("rev-parse", "--short", "HEAD"), "dirty": bool(_git("status", "--porcelain", "--untracked-files=no")),
+    return {"command": "python " + " ".join(shlex.quote(a) for a in [str(script), *portable_args(list(argv[1:]))]),
+            "commit": _git("rev-parse", "--short", "HEAD"), "dirty": dirty(),
             "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), "machine": machine()}
 
 
+# set to 1 to write figures measured on a tree with uncommitted changes (marked so; no README table takes them)
+ALLOW_DIRTY_ENV = "LIPMAP_BENCH_ALLOW_DIRTY"
+_DEFAULT_RESULTS = RESULTS
+
+
+def dirty() -> bool:
+    """Whether the checkout has uncommitted changes to tracked files (figures from it reproduce from no commit)."""
+    return bool(_git("status", "--porcelain", "--untracked-files=no"))
+
+
+def require_clean() -> None:
+    """Stop a benchmark that would write into ``benchmarks/results/`` from a dirty tree, before it spends its time
+    (unless ``LIPMAP_BENCH_ALLOW_DIRTY=1``)."""
+    if RESULTS == _DEFAULT_RESULTS and os.environ.get(ALLOW_DIRTY_ENV) != "1" and dirty():
+        raise SystemExit(f"benchmarks/results: the tree has uncommitted changes, so these figures would reproduce from no "
+                         f"commit. Commit first (or run from a clean worktree), or set {ALLOW_DIRTY_ENV}=1 to write "
+                         f"them marked '(uncommitted changes)'.\n{_git('status', '--short', '--untracked-files=no')}")
+
+
 def write(name: str, data: dict, argv=None) -> Path:
-    """Write ``data`` with its provenance to ``benchmarks/results/<name>.json``; returns the path."""
+    """Write ``data`` with its provenance to ``benchmarks/results/<name>.json``; returns the path. Refuses a dirty
+    tree (:func:`require_clean`)."""
+    require_clean()
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"{name}.json"
+    data = _portable_values(json.loads(json.dumps(data, default=float)))
     path.write_text(json.dumps({"provenance": provenance(argv), **data}, indent=1, default=float) + "\n")
     print(f"results: {path}")
     return path

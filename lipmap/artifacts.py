@@ -74,7 +74,8 @@ def views_key(views) -> dict:
 def scene_key(scene, views=None) -> dict:
     """The inputs of a step that reads ``views`` (default: the mapping views) of ``scene``: the scene's
     identity, its pose source and depth handling, its metadata (a synthetic scene's preset) and the views."""
-    meta = {k: v for k, v in (scene.meta or {}).items() if k != "skipped_frames"}
+    # where the pose lists lie and how the focal is described are not inputs: the views' poses and cameras are
+    meta = {k: v for k, v in (scene.meta or {}).items() if k not in ("skipped_frames", "pgt_files", "focal_source")}
     return {
         "dataset": scene.dataset,
         "scene": scene.name,

@@ -30,6 +30,8 @@ def _scene_names(dataset: str, root, scenes: str | None) -> list[str]:
 
 def scene_info(scene) -> dict:
     """Per-scene summary used by `lipmap-loc info`."""
+    from collections import Counter
+
     import numpy as np
 
     v0 = scene.mapping[0]
@@ -39,6 +41,8 @@ def scene_info(scene) -> dict:
         "n_query": len(scene.query),
         "image_size": [v0.camera.width, v0.camera.height],
         "intrinsics": list(v0.camera.params),
+        "focal": {f"{f:g}": n for f, n in Counter(v.camera.fx for v in scene.all_views()).most_common()},
+        "focal_source": scene.meta.get("focal_source"),
         "pose_source": scene.pose_source,
         "depth": "none" if depth is None else ("registered" if scene.depth_registered else "raw (not registered)"),
         "depth_valid_fraction_first_frame": None if depth is None else round(float((depth > 0).mean()), 4),
@@ -60,7 +64,8 @@ def cmd_info(args):
 
     out = {"dataset": args.dataset, "scenes": {}}
     for name in _scene_names(args.dataset, args.root, args.scenes):
-        scene = load_scene(args.dataset, args.root, name, pose_source=args.pose_source, register_depth=not args.no_registration)
+        scene = load_scene(args.dataset, args.root, name, pose_source=args.pose_source, register_depth=not args.no_registration,
+                           pgt_dir=args.pgt)
         out["scenes"][name] = scene_info(scene)
     if args.json:
         print(json.dumps(out, indent=2))
@@ -70,6 +75,8 @@ def cmd_info(args):
         print(f"{name}  ({s['root']})")
         print(f"  mapping views: {s['n_mapping']}   query views: {s['n_query']}")
         print(f"  image: {s['image_size'][0]}x{s['image_size'][1]}   intrinsics fx={fx:g} fy={fy:g} cx={cx:g} cy={cy:g}")
+        focals = ", ".join(f + (f" ({n} views)" if len(s["focal"]) > 1 else "") for f, n in s["focal"].items())
+        print(f"  focal: {focals} px, from {s['focal_source']}")
         if "depth_intrinsics" in s:
             print(f"  depth camera: fx={s['depth_intrinsics'][0]:g}")
         print(f"  depth: {s['depth']}  valid fraction (first frame) {s['depth_valid_fraction_first_frame']}  range {s.get('depth_range_m')} m")
@@ -127,6 +134,18 @@ def eval_config(args):
     return conf
 
 
+def _hloc_outputs(args):
+    """``--hloc DIR`` and its overrides as :class:`~localization.hloc_outputs.HlocOutputs` (None without --hloc)."""
+    from .hloc_outputs import HlocOutputs
+
+    given = {k: getattr(args, f"hloc_{k}") for k in ("sfm", "features", "matches", "pairs")}
+    if args.hloc is None:
+        if any(v is not None for v in given.values()):
+            raise InputError("--hloc-sfm, --hloc-features, --hloc-matches and --hloc-pairs go with --hloc DIR")
+        return None
+    return HlocOutputs(args.hloc, **given)
+
+
 def cmd_eval(args):
     from .pipeline import run_eval
 
@@ -151,9 +170,9 @@ def cmd_eval(args):
             raise InputError("--root is required for --dataset 7scenes")
         root = args.root
         scenes = _scene_names(args.dataset, root, args.scenes)
-    path = run_eval(args.dataset, root, scenes, args.out, conf, hloc_dir=args.hloc, pose_source=args.pose_source,
+    path = run_eval(args.dataset, root, scenes, args.out, conf, hloc_dir=_hloc_outputs(args), pose_source=args.pose_source,
                     register_depth=not args.no_registration, overwrite=args.overwrite, mapping_step=args.mapping_step,
-                    skip_bad_frames=args.skip_bad_frames, runner=runner)
+                    skip_bad_frames=args.skip_bad_frames, runner=runner, pgt_dir=args.pgt, linemap=args.linemap)
     summary = path.parent / "summary.md"
     print(summary.read_text())
     print(f"results: {path}\nsummary: {summary}")
@@ -181,7 +200,7 @@ def cmd_map(args):
         raise InputError(f"--mapping-step must be >= 1, got {args.mapping_step}")
     scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source,
                        register_depth=not args.no_registration, mapping_step=args.mapping_step,
-                       skip_bad_frames=args.skip_bad_frames)
+                       skip_bad_frames=args.skip_bad_frames, pgt_dir=args.pgt)
     scene, _ = check_scene(scene, args.skip_bad_frames)
     path = map_scene(scene, args.out, conf, args.method, args.lines, args.overwrite)
     from lipmap.linemap import LineMap
@@ -234,7 +253,7 @@ def cmd_map_eval(args):
             raise InputError("give --gt MESH_OR_PLY, or --dataset, --root and --scene")
         from lipmap.datasets import load_scene
 
-        scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source)
+        scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source, pgt_dir=args.pgt)
         gt = scene_ground_truth(scene)
     overrides = {}
     if args.thresholds:
@@ -279,7 +298,8 @@ POSE_SOURCES = ("posetxt", "dslam", "sfm")
 
 
 def _add_dataset_args(p, scenes=True):
-    p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True)
+    p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True,
+                   help="7scenes (the official layout, or scenes cut from it) or synthetic (scenes made by `lipmap-loc synth`)")
     p.add_argument("--root", type=Path, required=True, help="dataset root (holds <scene>/TrainSplit.txt)")
     if scenes:
         p.add_argument("--scenes", default=None, help="comma-separated scene names, or 'all' (default: every scene found)")
@@ -288,7 +308,13 @@ def _add_dataset_args(p, scenes=True):
 
 def _add_pose_args(p, registration: bool = True):
     p.add_argument("--pose-source", default="posetxt", choices=POSE_SOURCES,
-                   help="poses for mapping AND evaluation (7-Scenes pose.txt or pseudo-GT lists)")
+                   help="poses for mapping AND evaluation (7-Scenes pose.txt or pseudo-GT lists); sfm and dslam also "
+                        "set each view's focal length to its list's")
+    p.add_argument("--pgt", type=Path, default=None, metavar="DIR",
+                   help="the published pseudo-GT lists <scene>_{train,test}.txt of --pose-source sfm|dslam: a clone of "
+                        "github.com/tsattler/visloc_pseudo_gt_limitations, its pgt/ folder, or its pgt/SOURCE/7scenes/ "
+                        "(default: ROOT/pgt when it holds SOURCE/7scenes/, else ROOT/<scene>/pgt/SOURCE_<scene>.txt; "
+                        "docs/data.md)")
     if registration:
         p.add_argument("--no-registration", action="store_true", help="use raw depth as if it were the colour camera's")
 
@@ -403,15 +429,33 @@ def _add_eval_parser(sub):
     from .points import confs as point_confs
 
     p = sub.add_parser("eval", help="localization benchmark: map, localize point-only and point+line, evaluate")
-    p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True)
+    p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True,
+                   help="7scenes (the official layout, or scenes cut from it) or synthetic (scenes made by `lipmap-loc synth`)")
     p.add_argument("--root", type=Path, default=None, help="dataset root (synthetic: generated under OUT when omitted)")
     p.add_argument("--scenes", default=None, help="comma-separated scenes or 'all'")
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--hloc", type=Path, default=None, help="hloc outputs, one folder per scene (sfm model, features, matches, pairs)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder: OUT/<dataset>/ gets summary.md, results.json, report.html and a folder per scene")
+    p.add_argument("--hloc", type=Path, default=None, metavar="DIR",
+                   help="2D-3D points from hloc's outputs: DIR holds one folder per scene, as hloc's outputs/7scenes/ "
+                        "(the model, features and query matches are chosen by rule and printed; the query pairs come "
+                        "from that folder or the dataset's 7scenes_densevlad_retrieval_top_10/)")
+    for what, example in (("sfm", "sfm_superpoint+superglue"), ("features", "feats-superpoint-n4096-r1024.h5"),
+                          ("matches", "feats-superpoint-n4096-r1024_matches-superglue_{scene}_top10.h5"),
+                          ("pairs", "DATA/7scenes_densevlad_retrieval_top_10/{scene}_top10.txt")):
+        p.add_argument(f"--hloc-{what}", default=None, metavar="PATH",
+                       help=f"with --hloc: use this {'SfM model folder' if what == 'sfm' else what + ' file'} instead "
+                            f"of the one the rule picks ({{scene}} becomes the scene; relative to the scene's hloc "
+                            f"folder or the current directory), e.g. {example}")
+    p.add_argument("--linemap", default=None, metavar="PATH",
+                   help="localize against this line map (linemap.h5 from `lipmap-loc map`) instead of mapping here; "
+                        "{scene} in PATH becomes each scene's name")
+    p.add_argument("--seed", type=int, default=0, help="seed of every random step (RANSAC, the point-match draws)")
     p.add_argument("--max-point-matches", type=int, default=None, help="seeded random subset of N 2D-3D point matches per query")
     _add_mapping_args(p, method_default=LocalizationConfig().map_method)
-    p.add_argument("--line-query", default=None, choices=list(LINE_QUERY_METHODS))
+    p.add_argument("--line-query", default=None, choices=list(LINE_QUERY_METHODS),
+                   help="how a query's 2D lines find their map lines: projection (default: the map lines visible from "
+                        "the pose, projected and matched by angle and distance) or raycast (the paper's: rays of each "
+                        "line's 1-px region cast against the planes; lipmap maps only, slower)"),
     p.add_argument("--min-support", type=int, default=None, metavar="N",
                    help="map lines seen in fewer than N mapping images (by the track test) are left out of the line "
                         f"query and the rescue (default {LineQueryConfig().min_support}: the lines no image verifies; "
@@ -431,7 +475,8 @@ def _add_eval_parser(sub):
                    help="the rescue starts from P3P poses only, without the two-point poses aligned by vanishing points "
                         "(for scenes whose lines do not run along a few dominant directions; docs/localization.md)")
     p.add_argument("--points", default="sift-n4096", choices=list(point_confs), help="built-in point preset")
-    p.add_argument("--synth-preset", default="small", choices=list(SYNTH_PRESETS))
+    p.add_argument("--synth-preset", default="small", choices=list(SYNTH_PRESETS),
+                   help="the synthetic scene generated when --dataset synthetic has no --root (default small)")
     p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
                    help="run on Ray (pip install \"lipmap[ray]\"): each scene's mapping and chunks of its queries are "
                         "tasks. No ADDRESS: a local Ray instance; 'auto', 'ray://HOST:PORT' or 'HOST:PORT': a cluster whose "
@@ -444,12 +489,15 @@ def _add_eval_parser(sub):
 
 def _add_map_parser(sub):
     p = sub.add_parser("map", help="build a line map (linemap.h5, linemap.ply, planes.ply, linemap.html: interactive 3D view)")
-    p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True)
-    p.add_argument("--root", type=Path, required=True)
-    p.add_argument("--scene", required=True)
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True,
+                   help="7scenes (the official layout, or scenes cut from it) or synthetic (scenes made by `lipmap-loc synth`)")
+    p.add_argument("--root", type=Path, required=True, help="dataset root (holds <scene>/TrainSplit.txt)")
+    p.add_argument("--scene", required=True, help="the scene to map (a folder under --root)")
+    p.add_argument("--out", type=Path, required=True, help="folder for linemap.h5 and its companions (made if missing)")
     _add_mapping_args(p, method_default="lipmap")
-    p.add_argument("--lines", type=Path, default=None, help="2D lines made elsewhere (folder of WireframeGraph JSON / npz, or HDF5)")
+    p.add_argument("--lines", type=Path, default=None,
+                   help="2D lines made elsewhere instead of LSD: hloc/DeepLSD/SOLD2 lines2d.h5, or a folder of HAWP "
+                        "WireframeGraph JSON / npz files, one per mapping image (lipmap.lines2d)")
     p.add_argument("--plane-depth-tol", type=float, default=None, metavar="METRES",
                    help="lipmap: lines inside a surface follow the input depth where the planes are more than this "
                         "far from it (preset default 0.03, for sensor depth); 0 = on the planes only (noisy or "
@@ -466,23 +514,25 @@ def _add_map_eval_parser(sub):
     p.add_argument("--min-support", type=int, default=0, metavar="N",
                    help="evaluate only the lines seen in at least N images (LIMAP's n_visible_views; default 0: all, "
                         "also the lines no image's detection agrees with)")
-    p.add_argument("--dataset", choices=["7scenes", "synthetic"])
-    p.add_argument("--root", type=Path)
-    p.add_argument("--scene")
+    p.add_argument("--dataset", choices=["7scenes", "synthetic"],
+                   help="with --root and --scene: score against the scene's own ground truth (its mesh, or its depth fused)")
+    p.add_argument("--root", type=Path, help="dataset root (with --dataset and --scene)")
+    p.add_argument("--scene", help="the scene the map was made of (with --dataset and --root)")
     _add_pose_args(p, registration=False)
-    p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--json", type=Path, default=None, help="also write the metrics to this JSON file")
     p.set_defaults(func=cmd_map_eval)
 
 
 # subcommands whose parsers live beside their library code: (module, name of add_<name>_parser)
-_PLUGGED = (("lipmap.datasets.synthetic", "synth"), ("localization.report", "report"), ("lipmap.linemap", "linemap_export"))
+_PLUGGED = (("lipmap.datasets.synthetic", "synth"), ("localization.report", "report"), ("lipmap.linemap", "linemap_export"),
+            ("localization.download", "download"))
 
 
 def build_parser() -> argparse.ArgumentParser:
     import importlib
 
     ap = argparse.ArgumentParser(prog="lipmap-loc", description=__doc__.splitlines()[0])
-    ap.add_argument("-v", "--verbose", action="store_true")
+    ap.add_argument("-v", "--verbose", action="store_true", help="log debug messages too")
     sub = ap.add_subparsers(dest="command", required=True)
     for add in (_add_info_parser, _add_eval_parser, _add_map_parser, _add_map_eval_parser):
         add(sub)

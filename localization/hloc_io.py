@@ -431,6 +431,12 @@ class ModelIndex:
             self._ids[name] = ids
         return self._ids[name]
 
+    def num_points2D(self, name: str) -> int:
+        """Number of 2D points (keypoints, observed or not) of image ``name`` in the model."""
+        if name not in self._by_name:
+            raise InputError(f"image {name!r} is not in the SfM model", self.path)
+        return int(self.rec.images[self._by_name[name]].num_points2D())
+
     def cam_from_world(self, name: str) -> np.ndarray:
         """(4, 4) pose of image ``name`` in the model (a starting pose for the line query of a weak query)."""
         if name not in self._by_name:

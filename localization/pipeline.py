@@ -39,6 +39,7 @@ from lipmap.poses import pose_errors
 from . import evaluate as ev
 from .estimate import (PointLinePoseConfig, PointPoseConfig, estimate_pose_point_line, estimate_pose_points,
                        refine_pose_point_line, subsample_matches)
+from .hloc_outputs import HlocOutputs, as_hloc_outputs
 from .hypotheses import HypothesisConfig, line_verified_poses
 from .linequery import LineQuery, LineQueryConfig, correct_line_matches
 
@@ -155,33 +156,27 @@ class BuiltinPoints:
 
 
 class HlocPoints:
-    """hloc outputs for one scene: an SfM model folder, features.h5, matches.h5 and a query pairs file."""
+    """hloc's outputs for one scene: an SfM model, features, the query matches and the query pairs, chosen in hloc's
+    output tree by rule or given (:mod:`localization.hloc_outputs`), and checked against the scene."""
 
-    def __init__(self, folder: Path):
+    def __init__(self, hloc, scene):
+        from . import hloc_outputs as ho
         from .hloc_io import ModelIndex, read_pairs, read_sfm
 
-        folder = Path(folder)
-        if not folder.is_dir():
-            raise InputError("hloc output folder for this scene is missing", folder)
-        sfm = [p.parent for p in folder.rglob("images.bin")]
-        h5s = sorted(folder.glob("*.h5"))
-        feats = [p for p in h5s if "match" not in p.name]
-        matches = [p for p in h5s if "match" in p.name]
-        pairs = sorted(p for p in folder.glob("*.txt") if "pairs" in p.name or "query" in p.name)
-        for what, found in (("SfM model (folder with images.bin)", sfm), ("features file (*.h5 without 'match' in its name)", feats),
-                            ("matches file (*.h5 with 'match' in its name)", matches),
-                            ("query pairs file (*.txt with 'pairs' or 'query' in its name)", pairs)):
-            if len(found) != 1:
-                raise InputError(f"expected exactly one {what} in the hloc folder, found {len(found)}: "
-                                 f"{[p.name for p in found]}", folder)
-        self.sfm, self.features, self.matches, self.pairs = sfm[0], feats[0], matches[0], read_pairs(pairs[0])
-        self.pairs_file = pairs[0]
+        hloc = ho.as_hloc_outputs(hloc)
+        self.files = ho.find_hloc_files(hloc, scene)
+        self.sfm, self.features, self.matches = self.files.sfm, self.files.features, self.files.matches
+        self.pairs_file = self.files.pairs
+        self.pairs = read_pairs(self.pairs_file)
         self.model = ModelIndex(read_sfm(self.sfm), self.sfm)
+        ho.check_model_features(self.model, self.features, self.sfm)
+        self.frame_gap_m = ho.check_world_frame(self.model, scene, self.sfm, _other_pose_sources(scene))
         self.timings = {}
-        self.folder = folder
+        self.folder = hloc.scene_folder(scene.name)
+        self.info = {"hloc": self.files.to_json(), "frame_gap_cm": round(100 * self.frame_gap_m, 2)}
         # hloc's files are the user's: their paths and sizes stand for their content
-        self.stamp = Stamp("points", {"hloc": [(str(p.resolve()), p.stat().st_size) for p in
-                                               (self.features, self.matches, self.pairs_file, self.sfm / "points3D.bin")]})
+        self.stamp = Stamp("points", {"hloc": [(str(Path(p).resolve()), Path(p).stat().st_size) for p in
+                                               (self.features, self.matches, self.pairs_file, _model_file(self.sfm))]})
 
     def retrieved_for(self, name: str) -> list:
         """The database images paired with query ``name`` in the pairs file, in file order."""
@@ -194,17 +189,39 @@ class HlocPoints:
                                        pairs_name=self.pairs_file)
 
 
+def _model_file(sfm_dir: Path) -> Path:
+    """The file of a COLMAP model whose size stands for its 3D points (binary or text)."""
+    return next((sfm_dir / f for f in ("points3D.bin", "points3D.txt") if (sfm_dir / f).exists()), sfm_dir / "images.bin")
+
+
+def _other_pose_sources(scene) -> dict:
+    """{pose source: mapping views} of the scene under each other pose source that loads (for the frame message)."""
+    from lipmap.datasets import load_scene
+
+    out = {}
+    if scene.dataset != "7scenes":
+        return out
+    for source in ("posetxt", "dslam", "sfm"):
+        if source == scene.pose_source:
+            continue
+        try:
+            out[source] = load_scene(scene.dataset, Path(scene.root).parent, scene.name, pose_source=source).mapping
+        except InputError:
+            continue
+    return out
+
+
 # ----------------------------------------------------------------------------------------------
 # per-query localization
 # ----------------------------------------------------------------------------------------------
 def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: LocalizationConfig, cam_from_world_gt=None,
                    trace: Optional[list] = None) -> dict:
-    """Point-only and point+line poses of one query. Never raises: failures are recorded.
+    """Point-only and point+line poses of one query of a benchmark run, from its point source. Never raises:
+    failures are recorded.
 
-    With the ground-truth pose, the line matches of the last refinement (and its PnPL line inliers) are
-    checked against it (:func:`~localization.linequery.correct_line_matches`) - after the timing, so the
-    check costs the method nothing. ``trace`` (a list) receives the line rescue's starts and their outcomes
-    (:func:`rescue_pose`), and the point matches as ``{"point_matches": pm}``.
+    The point matches come from ``points.matches_for(name)``, limited to ``conf.max_point_matches`` (a seeded draw);
+    the rest is :func:`localize_matches`. ``trace`` (a list) also receives the point matches as
+    ``{"point_matches": pm}``.
     """
     rec = {"name": name, "point": {"success": False}, "point+line": {"success": False}}
     t0 = time.perf_counter()
@@ -217,12 +234,40 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
     pm = pm.subset(idx)
     if trace is not None:
         trace.append({"point_matches": pm})
+    return localize_matches(pm, lines2d, camera, lq, conf, name, points, cam_from_world_gt, trace, t0)[0]
+
+
+def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfig, name: str = "query", points=None,
+                     cam_from_world_gt=None, trace: Optional[list] = None, t0: Optional[float] = None) -> tuple:
+    """Point-only and point+line poses of one query from its 2D-3D point matches and 2D lines: the one
+    implementation behind the benchmark loop (:func:`localize_query`) and the per-query API
+    (:class:`localization.api.Localizer`). Never raises for a bad query: failures are recorded.
+
+    Args:
+        pm: :class:`~localization.points.PointMatches` (p2d COLMAP pixels, p3d world).
+        lines2d: :math:`(L, 4)` query segments, COLMAP pixels.
+        points: the point source (for retrieved images' poses as rescue starts, ``LineRescueConfig.prior_views``).
+        cam_from_world_gt: with it, the line matches of the last refinement (and its PnPL line inliers) are checked
+            (:func:`~localization.linequery.correct_line_matches`) - after the timing, so the check costs nothing.
+        trace: a list receiving the line rescue's starts and their outcomes (:func:`rescue_pose`).
+        t0: ``time.perf_counter()`` when the query started (default: now); its times count from there.
+
+    Returns:
+        (record, detail): the journal record (``point`` and ``point+line`` dicts) and the arrays behind it,
+        ``point_inliers`` (N,) bool, ``point_line_inliers`` (N,) bool, ``line_matches`` (the line query's dict:
+        ``lines2d`` (M, 2, 2), ``lines3d`` (M, 2, 3), ``line_idx`` (M,)) and ``line_inliers`` (M,) bool.
+    """
+    t0 = time.perf_counter() if t0 is None else t0
+    rec = {"name": name, "point": {"success": False}, "point+line": {"success": False}}
+    detail = {"point_inliers": np.zeros(len(pm), bool), "point_line_inliers": np.zeros(len(pm), bool),
+              "line_matches": None, "line_inliers": np.zeros(0, bool)}
     est = estimate_pose_points(pm.p2d, pm.p3d, camera, replace(conf.point_pose, seed=conf.seed))
     t_point = (time.perf_counter() - t0) * 1000
     rec["point"] = {"success": bool(est["success"]), "n_matches": len(pm), "n_inliers": int(est["n_inliers"]),
                     "ms": t_point, "cam_from_world": _T(est["cam_from_world"] if est["success"] else None)}
     if not est["success"]:
         rec["point"]["reason"] = est.get("reason")
+    detail["point_inliers"] = np.asarray(est["inliers"], bool)
     t1 = time.perf_counter()
     T = est["cam_from_world"] if est["success"] else None
     plconf = replace(conf.point_line_pose, seed=conf.seed)
@@ -240,12 +285,15 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
         if r is not None:
             T, rescued = r["cam_from_world"], True
             plconf = replace(plconf, max_reproj_error=rescue.max_point_error)
+            detail["point_line_inliers"] = np.asarray(r["inliers"], bool)
     t_rescue = (time.perf_counter() - t1) * 1000
     if T is None:
         why = "no point-only pose, and the line rescue found none" if rescue.weak_inliers > 0 else "no point-only pose to start from"
         rec["point+line"] = {"success": False, "reason": why,
                              "ms": t_point + (time.perf_counter() - t1) * 1000}
-        return rec
+        return rec, detail
+    if not rescued:
+        detail["point_line_inliers"] = detail["point_inliers"]
     m, inliers, used_lines = None, None, False
     visible = lq.visible_lines(T, camera, conf.line_query.occlusion_tol) if conf.line_query.method == "projection" else None
     for lconf in line_query_schedule(conf):
@@ -257,6 +305,7 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
             m = m or tried  # the matches the pose rests on: the last successful refinement's
             break
         T, m, inliers, used_lines = r["cam_from_world"], tried, r["line_inliers"], True
+        detail["point_line_inliers"] = np.asarray(r["inliers"], bool)
     t_line = (time.perf_counter() - t1) * 1000
     n_lm = len(m["line_idx"])
     rec["point+line"] = {"success": True, "used_lines": used_lines, "rescued": rescued, "n_line_matches": n_lm,
@@ -268,7 +317,9 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
         ok = correct_line_matches(m["lines2d"], m["lines3d"], cam_from_world_gt, camera)
         rec["point+line"]["n_line_matches_correct"] = int(ok.sum())
         rec["point+line"]["n_line_inliers_correct"] = int((ok & inliers).sum()) if used_lines else 0
-    return rec
+    detail["line_matches"] = m
+    detail["line_inliers"] = np.asarray(inliers, bool) if used_lines else np.zeros(n_lm, bool)
+    return rec, detail
 
 
 def line_priors(name: str, est: dict, points, k: int) -> list:
@@ -429,7 +480,7 @@ class SceneJob:
     scene: object  # lipmap.scene.Scene with the frames that passed check_scene
     out_dir: Path
     conf: LocalizationConfig
-    hloc_dir: Optional[Path]
+    hloc_dir: Optional[HlocOutputs]
     map_info: dict
     qlines_h5: Path
     journal_path: Path
@@ -451,7 +502,8 @@ class SceneJob:
 
 
 def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, lines_source=None, overwrite=False,
-                   skip_bad_frames: bool = False, checkpoint: Optional[Callable[[str], None]] = None) -> dict:
+                   skip_bad_frames: bool = False, checkpoint: Optional[Callable[[str], None]] = None,
+                   linemap=None) -> dict:
     """Run the whole per-scene pipeline and write the scene's results; returns the scene summary.
 
     Each variant of an artifact lives where its settings put it: the line map in
@@ -465,7 +517,8 @@ def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, line
     ``checkpoint(event)`` is called after each artifact ("lines2d", "planes", "linemap", "mapped") and
     after each query's journal entry ("query"): progress for benchmarks, fault injection for tests.
     """
-    job, points, lq = prepare_scene(scene, out_dir, conf, hloc_dir, lines_source, overwrite, skip_bad_frames, checkpoint)
+    job, points, lq = prepare_scene(scene, out_dir, conf, hloc_dir, lines_source, overwrite, skip_bad_frames, checkpoint,
+                                    linemap)
     done = resume_scene(job, overwrite)
     todo = pending_queries(job, done)
     journal_records(job, done, localize_views(tqdm(todo, desc=f"localize {job.scene.name}"), points, job.qlines_h5, lq, conf),
@@ -474,7 +527,7 @@ def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, line
 
 
 def prepare_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, lines_source=None, overwrite=False,
-                  skip_bad_frames: bool = False, checkpoint: Optional[Callable[[str], None]] = None):
+                  skip_bad_frames: bool = False, checkpoint: Optional[Callable[[str], None]] = None, linemap=None):
     """Check the frames, then make (or reuse) the scene's line map, point source and query lines.
 
     Returns (:class:`SceneJob`, point source, :class:`LineQuery`): the job names the artifacts on disk; the other
@@ -491,16 +544,17 @@ def prepare_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, lines
     all_queries = list(scene.query)
     scene, bad_queries = check_scene(scene, skip_bad_frames)
     t0 = time.time()
-    linemap, map_info = scene_linemap(scene, out_dir, conf, lines_source, overwrite, checkpoint)
+    linemap, map_info = scene_linemap(scene, out_dir, conf, lines_source, overwrite, checkpoint, linemap)
     t_map = time.time() - t0
     checkpoint("mapped")
     lq = _line_query(linemap, conf, map_info)
     points = open_points(scene, out_dir, conf, hloc_dir, overwrite)
     qlines_h5 = query_lines_file(scene, out_dir, conf, overwrite)
     journal_path = out_dir / f"queries-{_journal_digest(scene, conf, map_info, points, qlines_h5)}.jsonl"
-    sources = {"map": map_info, "points": {"folder": _rel(points.folder, out_dir), "digest": points.stamp.digest},
+    sources = {"map": map_info, "points": {"folder": _rel(points.folder, out_dir), "digest": points.stamp.digest,
+                                           **getattr(points, "info", {})},
                "journal": journal_path.name}
-    job = SceneJob(scene, out_dir, conf, None if hloc_dir is None else Path(hloc_dir), map_info, qlines_h5, journal_path,
+    job = SceneJob(scene, out_dir, conf, as_hloc_outputs(hloc_dir), map_info, qlines_h5, journal_path,
                    bad_queries, gt={v.name: v.cam_from_world for v in all_queries},
                    skipped={v.name: v.meta["gt_error"] for v in all_queries if v.meta.get("gt_error")},
                    timings={"map_s": t_map, **points.timings}, sources=sources)
@@ -508,8 +562,9 @@ def prepare_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, lines
 
 
 def open_points(scene, out_dir: Path, conf: LocalizationConfig, hloc_dir=None, overwrite: bool = False):
-    """The scene's 2D-3D point source: hloc's files under ``hloc_dir/<scene>``, else the built-in one (made or reused)."""
-    return HlocPoints(Path(hloc_dir) / scene.name) if hloc_dir else BuiltinPoints(scene, out_dir, conf, overwrite)
+    """The scene's 2D-3D point source: hloc's files under ``hloc_dir/<scene>`` (a folder or
+    :class:`~localization.hloc_outputs.HlocOutputs`), else the built-in one (made or reused)."""
+    return HlocPoints(hloc_dir, scene) if hloc_dir else BuiltinPoints(scene, out_dir, conf, overwrite)
 
 
 def finish_scene(job: SceneJob, done: dict) -> dict:
@@ -526,9 +581,13 @@ def _rel(path: Path, base: Path) -> str:
 
 
 def scene_linemap(scene, out_dir: Path, conf: LocalizationConfig, lines_source=None, overwrite: bool = False,
-                  checkpoint: Optional[Callable[[str], None]] = None):
-    """The line map of this configuration, built or reused in its own variant folder; returns (LineMap, info)."""
+                  checkpoint: Optional[Callable[[str], None]] = None, linemap=None):
+    """The line map of this configuration, built or reused in its own variant folder, or the map ``linemap`` (a
+    ``linemap.h5`` already built, e.g. by :func:`lipmap.mapping.pipeline.map_scene`); returns (LineMap, info)."""
     from lipmap.linemap import LineMap
+
+    if linemap is not None:
+        return given_linemap(scene, Path(linemap), out_dir)
     from lipmap.mapping.pipeline import get_conf as map_conf
     from lipmap.mapping.pipeline import map_scene, map_variant_dir, mapping_stamp
 
@@ -543,6 +602,31 @@ def scene_linemap(scene, out_dir: Path, conf: LocalizationConfig, lines_source=N
     if not len(linemap):
         logger.warning("%s: the line map has no lines; point+line poses will be the point-only poses", path)
     return linemap, info
+
+
+def given_linemap(scene, path: Path, out_dir: Path):
+    """A line map built elsewhere, checked against the scene (same world frame: the pose source); (LineMap, info)."""
+    from lipmap.artifacts import digest as _digest
+    from lipmap.artifacts import read_stamp
+    from lipmap.linemap import LineMap
+
+    if not path.is_file():
+        raise InputError("line map file is missing", path)
+    stamp = read_stamp(path)
+    made = (stamp.settings.get("scene") or {}) if stamp is not None else {}
+    if made.get("pose_source") not in (None, scene.pose_source):
+        raise InputError(f"the line map was made with --pose-source {made['pose_source']}, and this run localizes "
+                         f"with {scene.pose_source}: their poses live in different world frames", path,
+                         f"evaluate with --pose-source {made['pose_source']}, or map again")
+    if made.get("scene") not in (None, scene.name):
+        logger.warning("%s was made for scene %s, not %s", path, made["scene"], scene.name)
+    lm = LineMap.load(path)
+    st = path.stat()
+    info = {"method": lm.metadata.get("method", "given"), "preset": lm.metadata.get("preset"), "path": _rel(path, out_dir),
+            "n_lines": len(lm), "given": True,
+            "digest": stamp.digest if stamp is not None else _digest([str(path.resolve()), st.st_size, st.st_mtime_ns])}
+    logger.info("Localizing %s against the line map %s (%d lines).", scene.name, path, len(lm))
+    return lm, info
 
 
 def _line_query(linemap, conf: LocalizationConfig, map_info: dict) -> LineQuery:
@@ -677,6 +761,7 @@ def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConf
         "scene": scene.name,
         "dataset": scene.dataset,
         "pose_source": scene.pose_source,
+        "pgt_files": (scene.meta or {}).get("pgt_files", []),
         "n_map_lines": n_map_lines,
         **(sources or {}),
         "config": json.loads(json.dumps(asdict(conf), default=str)),
@@ -692,38 +777,45 @@ def write_scene_results(scene, out_dir: Path, recs: dict, conf: LocalizationConf
 
 
 def localize_scenes(scenes, conf: LocalizationConfig, hloc_dir=None, overwrite=False, skip_bad_frames: bool = False,
-                    checkpoint: Optional[Callable[[str], None]] = None):
+                    checkpoint: Optional[Callable[[str], None]] = None, linemaps: Optional[dict] = None):
     """The local scene runner of :func:`run_eval`: ``scenes`` yields (scene, out_dir); yields each scene's results,
     in order. localization.scaleout.RayRunner is the other one (same arguments, same results)."""
     for scene, out_dir in scenes:
         yield localize_scene(scene, out_dir, conf, hloc_dir, overwrite=overwrite, skip_bad_frames=skip_bad_frames,
-                             checkpoint=checkpoint)
+                             checkpoint=checkpoint, linemap=(linemaps or {}).get(scene.name))
 
 
 def run_eval(dataset: str, root, scenes, out, conf: LocalizationConfig, hloc_dir=None, pose_source="posetxt",
              register_depth=True, overwrite=False, mapping_step: int = 1, skip_bad_frames: bool = False,
-             checkpoint: Optional[Callable[[str], None]] = None, runner: Optional[Callable] = None) -> Path:
+             checkpoint: Optional[Callable[[str], None]] = None, runner: Optional[Callable] = None,
+             pgt_dir=None, linemap=None) -> Path:
     """Localize every scene and write OUT/<dataset>/results.json and summary.md; returns the results path.
 
     ``runner`` localizes the scenes (default :func:`localize_scenes`, here, one after the other); e.g.
     ``localization.scaleout.RayRunner`` spreads them and their queries over a Ray cluster.
+    ``linemap``: line maps already built (``linemap.h5``), used instead of mapping here: a path (``{scene}`` in it
+    becomes each scene's name) or ``{scene: path}``.
     """
     from lipmap.datasets import load_scene
 
     # absolute paths: a runner's workers may start elsewhere, and the paths in messages are the same either way
     root, out = Path(root).resolve(), Path(out).resolve() / dataset
+    hloc_dir = as_hloc_outputs(hloc_dir)
     all_res = {"dataset": dataset, "root": str(root), "pose_source": pose_source, "config": json.loads(json.dumps(asdict(conf), default=str)),
                "scenes": {}, "scene_details": {}}
 
     def loaded():
         for name in scenes:
             scene = load_scene(dataset, root, name, pose_source=pose_source, register_depth=register_depth,
-                               mapping_step=mapping_step, skip_bad_frames=skip_bad_frames)
+                               mapping_step=mapping_step, skip_bad_frames=skip_bad_frames, pgt_dir=pgt_dir)
             logger.info("Scene %s: %d mapping, %d query views (poses: %s).", name, len(scene.mapping), len(scene.query), pose_source)
             yield scene, out / name
 
+    if linemap is not None and not isinstance(linemap, dict):
+        linemap = {name: str(linemap).replace("{scene}", name) for name in scenes}
+    linemap = {k: Path(v).resolve() for k, v in (linemap or {}).items()}
     results = (runner or localize_scenes)(loaded(), conf, hloc_dir=hloc_dir, overwrite=overwrite,
-                                          skip_bad_frames=skip_bad_frames, checkpoint=checkpoint)
+                                          skip_bad_frames=skip_bad_frames, checkpoint=checkpoint, linemaps=linemap)
     for name, res in zip(scenes, results, strict=True):  # a runner yields the scenes' results in their order
         all_res["scenes"][name] = res["summary"]
         all_res["scene_details"][name] = {"n_map_lines": res["n_map_lines"], "map": res["map"], "timings": res["timings"]}

@@ -229,7 +229,10 @@ def _dataset_root(out: Path, dataset: str, all_res: dict, run: SceneRun, root) -
 def _load_scene(dataset, root, run: SceneRun):
     from lipmap.datasets import load_scene
 
-    return load_scene(dataset, root, run.name, pose_source=run.results.get("pose_source", "posetxt"))
+    # the published pseudo-GT folder the run read (pgt/<source>/7scenes), when it read that layout
+    published = [Path(f).parent for f in run.results.get("pgt_files", []) if Path(f).parent.name == "7scenes"]
+    return load_scene(dataset, root, run.name, pose_source=run.results.get("pose_source", "posetxt"),
+                      pgt_dir=published[0] if published else None)
 
 
 def detect_dataset(out_root) -> tuple[Path, str]:

@@ -19,6 +19,7 @@ from typing import Callable, Optional
 
 from lipmap import InputError, logger
 
+from .hloc_outputs import as_hloc_outputs
 from .pipeline import (LocalizationConfig, finish_scene, journal_records, localize_chunk, pending_queries, prepare_scene,
                        resume_scene)
 
@@ -34,9 +35,11 @@ def import_ray():
     return ray
 
 
-def _prepare(scene, out_dir: Path, conf: LocalizationConfig, hloc_dir, overwrite: bool, skip_bad_frames: bool):
+def _prepare(scene, out_dir: Path, conf: LocalizationConfig, hloc_dir, overwrite: bool, skip_bad_frames: bool,
+             linemap=None):
     """Ray task: a scene's artifacts; returns its :class:`~localization.pipeline.SceneJob` (the objects stay behind)."""
-    return prepare_scene(scene, out_dir, conf, hloc_dir, overwrite=overwrite, skip_bad_frames=skip_bad_frames)[0]
+    return prepare_scene(scene, out_dir, conf, hloc_dir, overwrite=overwrite, skip_bad_frames=skip_bad_frames,
+                         linemap=linemap)[0]
 
 
 @dataclass
@@ -76,7 +79,7 @@ class RayRunner:
         return True
 
     def __call__(self, scenes, conf: LocalizationConfig, hloc_dir=None, overwrite=False, skip_bad_frames: bool = False,
-                 checkpoint: Optional[Callable[[str], None]] = None):
+                 checkpoint: Optional[Callable[[str], None]] = None, linemaps: Optional[dict] = None):
         """Yield each scene's results in order, like :func:`localization.pipeline.localize_scenes`.
 
         ``checkpoint`` sees "mapped" when a scene's artifacts are ready and "query" after each journal entry (the
@@ -86,8 +89,9 @@ class RayRunner:
         try:
             prepare, chunk_task = ray.remote(_prepare), ray.remote(localize_chunk)
             # every scene's mapping is submitted at once; its queries as soon as its artifacts are there
-            hloc_dir = None if hloc_dir is None else Path(hloc_dir).resolve()
-            prepared = [prepare.remote(scene, Path(out_dir).resolve(), conf, hloc_dir, overwrite, skip_bad_frames)
+            hloc_dir = as_hloc_outputs(hloc_dir)  # absolute paths: the workers start elsewhere
+            prepared = [prepare.remote(scene, Path(out_dir).resolve(), conf, hloc_dir, overwrite, skip_bad_frames,
+                                       (linemaps or {}).get(scene.name))
                         for scene, out_dir in scenes]
             submitted = []
             for ref in prepared:

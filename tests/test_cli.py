@@ -230,3 +230,16 @@ def test_eval_bad_max_line_step(tmp_path, capsys):
         assert main(["eval", "--dataset", "synthetic", "--out", str(tmp_path), f"--max-line-step={bad}"]) == 2
         assert "--max-line-step takes 'METRES,DEGREES'" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # refused before any work
+
+
+def test_every_option_has_help():
+    """A user reads `lipmap-loc <command> --help`: every option says what it does."""
+    import argparse
+
+    from localization.cli import build_parser
+
+    ap = build_parser()
+    (sub,) = [a for a in ap._actions if isinstance(a, argparse._SubParsersAction)]
+    missing = [f"{name} {'/'.join(a.option_strings)}" for name, p in sub.choices.items() for a in p._actions
+               if a.option_strings and not isinstance(a, argparse._HelpAction) and not a.help]
+    assert not missing, missing

@@ -108,3 +108,29 @@ def test_localization_variants_rows_name_their_run(tmp_path, monkeypatch):
     assert ("| run | variant | x |\n| --- | --- | --- |\n"
             "| redkitchen-heldout (sfm), lipmap, 5 matches, 3 draws | default | 1 |\n|  | other | 2 |\n"
             "| redkitchen (posetxt), lift, all matches | default | 1 |\n|  | other | 2 |\n") in out
+
+
+def test_readme_tables_come_from_clean_commits():
+    """A figure made on a tree with uncommitted changes reproduces from no commit: the README shows none."""
+    mod = _readme_tables()
+    names = [n for block in mod.BLOCK.findall(mod.README.read_text()) for n in block[1].split()]
+    assert names
+    dirty = [n for n in names if json.loads((REPO / "benchmarks" / "results" / f"{n}.json").read_text())["provenance"].get("dirty")]
+    assert not dirty, f"README tables made on a dirty tree: {dirty}"
+
+
+def test_results_refuse_a_dirty_tree_unless_told(tmp_path, monkeypatch):
+    import pytest
+
+    mod = _readme_tables()
+    res = mod.results
+    monkeypatch.setattr(res, "dirty", lambda: True)
+    monkeypatch.delenv(res.ALLOW_DIRTY_ENV, raising=False)
+    monkeypatch.setattr(res, "RESULTS", res._DEFAULT_RESULTS)
+    with pytest.raises(SystemExit, match="uncommitted changes"):
+        res.write("never-written", {"table": {"header": [], "rows": []}})
+    assert not (res._DEFAULT_RESULTS / "never-written.json").exists()
+    monkeypatch.setattr(res, "RESULTS", tmp_path)  # a results folder of one's own (the tests') takes anything
+    monkeypatch.setenv(res.ALLOW_DIRTY_ENV, "1")
+    path = res.write("dirty-ok", {"table": {"header": [], "rows": []}})
+    assert json.loads(path.read_text())["provenance"]["dirty"] is True

@@ -2,7 +2,7 @@
 folder, per stage, under each thread environment asked for.
 
     python benchmarks/perf/bench_mapping.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
-        --scene redkitchen --out /tmp/bench-map [--runs 3] [--method lipmap] [--preset fast] \
+        --scene redkitchen --out OUT [--runs 3] [--method lipmap] [--preset fast] \
         [--env default --env OMP_WAIT_POLICY=PASSIVE] [--tag TAG]
 
 Each ``--env`` is ``default`` (the caller's environment) or ``KEY=VALUE[,KEY=VALUE]`` set on top of it for the

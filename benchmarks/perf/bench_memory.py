@@ -2,7 +2,7 @@
 
     python benchmarks/perf/bench_memory.py                    # 16 mapping + 1000 queries, 160x120
     python benchmarks/perf/bench_memory.py --quick            # 200 queries (smoke test)
-    python benchmarks/perf/bench_memory.py --workdir /tmp/m   # keep the scene and artifacts; a rerun
+    python benchmarks/perf/bench_memory.py --workdir WORK   # keep the scene and artifacts; a rerun
                                                               # reuses them and redoes only the queries
 
 A synthetic scene (``lipmap.datasets.synthetic``) is generated with few mapping frames and many

@@ -1,6 +1,6 @@
 """Time the built-in point pipeline's scale-out, old path vs new, on this machine.
 
-    python benchmarks/perf/bench_points.py --images /tmp/data/synth/room-s0 --num-images 24
+    python benchmarks/perf/bench_points.py --images DATA/synth/room-s0 --num-images 24
 
 * extraction (images/s): one process (the former loop) vs ``workers`` processes;
 * matching (pairs/s): every pair read and matched in the given (shuffled) order vs the blocked schedule;

@@ -2,7 +2,7 @@
 mapping views and 100 / 500 queries, at default settings.
 
     python -m localization.cli synth --preset large --seed 0 --out DATA      # 5 rooms, 1,500 + 500 frames, 640x480
-    python benchmarks/perf/bench_scale.py --root DATA --scene room-s0 --work /tmp/scale
+    python benchmarks/perf/bench_scale.py --root DATA --scene room-s0 --work WORK
         [--views 100 400 1500] [--queries 100 500] [--loc-views 100] [--tag TAG]
 
 Each measurement runs in a fresh process (so its peak RSS is its own): ``map_scene`` (method lipmap, preset

@@ -2,13 +2,17 @@
 
     <root>/<scene>/TrainSplit.txt, TestSplit.txt      lines "sequenceN"
     <root>/<scene>/seq-NN/frame-NNNNNN.color.{png,jpg}, .depth.png, .pose.txt (camera-to-world)
-    <root>/<scene>/pgt/{dslam,sfm}_<scene>.txt        optional pseudo ground truth (world-to-camera, colour)
+    <root>/<scene>/pgt/{dslam,sfm}_<scene>.txt        optional pseudo ground truth, one list per scene
+    <root>/pgt/{dslam,sfm}/7scenes/<scene>_{train,test}.txt   or the lists as Brachmann et al. publish them
 
 Pose sources (same source for mapping and evaluation; never mixed):
 - ``posetxt``: pose.txt, which is the DEPTH camera's pose (KinectFusion). With depth registration on,
   the colour camera's pose is ``colour_from_depth @ depth_from_world``; without it, pose.txt is used for
   the colour camera as most pipelines do.
-- ``dslam`` / ``sfm``: the pseudo ground-truth lists (colour camera, COLMAP world-to-camera).
+- ``dslam`` / ``sfm``: the pseudo ground-truth lists (colour camera, COLMAP world-to-camera), lines
+  ``name qw qx qy qz tx ty tz f``. Each view's camera takes its line's focal ``f`` (fx = fy = f, principal
+  point kept): the SfM lists were made with 526.22 for Chess and 525.505 for RedKitchen, not 525.
+  Where they are read from: :func:`pgt_lists`.
 """
 from __future__ import annotations
 
@@ -28,12 +32,16 @@ from .registration import SEVENSCENES_COLOR_FROM_DEPTH
 SEVENSCENES_SCENES = ("chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs")
 DOWNLOAD_HINT = (
     "the official 7-Scenes data is at https://www.microsoft.com/en-us/research/project/rgb-d-dataset-7-scenes/ "
-    "(unzip each scene and its seq-NN.zip files under ROOT/<scene>/)"
+    "(`lipmap-loc download 7scenes --root ROOT` fetches and unpacks them, or unzip each scene and its seq-NN.zip "
+    "files under ROOT/<scene>/)"
 )
 POSE_SOURCES = ("posetxt", "dslam", "sfm")
 COLOR_CAMERA = Camera(640, 480, (525.0, 525.0, 320.0, 240.0))
 DEPTH_CAMERA = Camera(640, 480, (585.0, 585.0, 320.0, 240.0))
 _FRAME_RE = re.compile(r"^frame-(\d{6})\.pose\.txt$")
+PGT_REPOSITORY = "https://github.com/tsattler/visloc_pseudo_gt_limitations"
+PGT_HINT = (f"give --pgt DIR: a clone of {PGT_REPOSITORY}, its pgt/ folder or its pgt/<source>/7scenes/ folder; "
+            "by default ROOT/pgt/<source>/7scenes/ is read when it exists, else ROOT/<scene>/pgt/<source>_<scene>.txt")
 
 
 @dataclass
@@ -45,6 +53,7 @@ class SevenScenesConfig:
     query_list: str | None = None  # hloc list_test.txt: restrict queries to these names
     color_from_depth: np.ndarray | None = None  # override the Kinect depth-to-colour extrinsic
     skip_bad_frames: bool = False  # a bad MAPPING frame is skipped with a warning instead of stopping
+    pgt_dir: str | Path | None = None  # published pseudo-GT lists (see pgt_lists); default ROOT/pgt, else per scene
 
 
 def find_scene_dir(root, scene: str) -> Path:
@@ -101,11 +110,14 @@ def read_pose_txt(path: Path) -> np.ndarray:
     return check_rigid(T, path)
 
 
-def read_pgt(path: Path) -> dict[str, np.ndarray]:
-    """Pseudo-GT list: ``seq-XX/frame-NNNNNN.color.png qw qx qy qz tx ty tz f`` -> {stem: cam_from_world}."""
+def read_pgt_list(path: Path) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """One pseudo-GT list, lines ``seq-XX/frame-NNNNNN.color.png qw qx qy qz tx ty tz [f]``.
+
+    Returns ``{frame key: cam_from_world}`` and ``{frame key: focal in pixels}`` for the lines that give a focal.
+    """
     if not path.exists():
-        raise InputError("pseudo ground-truth file is missing", path)
-    out = {}
+        raise InputError("pseudo ground-truth file is missing", path, PGT_HINT)
+    poses, focals = {}, {}
     for i, line in enumerate(path.read_text().splitlines()):
         parts = line.split()
         if not parts or parts[0].startswith("#"):
@@ -118,8 +130,81 @@ def read_pgt(path: Path) -> dict[str, np.ndarray]:
             raise InputError(f"line {i + 1}: non-numeric pose values", path) from None
         if not np.all(np.isfinite(vals)) or np.linalg.norm(vals[:4]) < 1e-6:
             raise InputError(f"line {i + 1}: invalid pose values {parts[1:8]}", path)
-        out[_frame_key(parts[0])] = T_from_qt(vals[:4] / np.linalg.norm(vals[:4]), vals[4:7])
-    return out
+        key = _frame_key(parts[0])
+        poses[key] = T_from_qt(vals[:4] / np.linalg.norm(vals[:4]), vals[4:7])
+        if len(parts) > 8:
+            try:
+                f = float(parts[8])
+            except ValueError:
+                f = float("nan")
+            if not (np.isfinite(f) and f > 0):
+                raise InputError(f"line {i + 1}: focal length must be a positive number of pixels, got {parts[8]!r}",
+                                 path)
+            focals[key] = f
+    return poses, focals
+
+
+def read_pgt(path: Path) -> dict[str, np.ndarray]:
+    """Pseudo-GT list -> {frame key: cam_from_world} (:func:`read_pgt_list` without the focal lengths)."""
+    return read_pgt_list(path)[0]
+
+
+def published_pgt_folder(pgt_dir, source: str) -> Path:
+    """The ``pgt/<source>/7scenes`` folder of ``pgt_dir``: a clone of the published repository, its ``pgt``
+    folder, or that folder itself."""
+    d = Path(pgt_dir)
+    if not d.is_dir():
+        raise InputError("pseudo ground-truth folder does not exist or is not a folder", d, PGT_HINT)
+    for cand in (d / "pgt" / source / "7scenes", d / source / "7scenes", d / "7scenes" if d.name == source else None):
+        if cand is not None and cand.is_dir():
+            return cand
+    if d.name == "7scenes" or any(d.glob("*_train.txt")) or any(d.glob("*_test.txt")):
+        if d.parent.name in POSE_SOURCES and d.parent.name != source:
+            raise InputError(f"this is the {d.parent.name} pseudo-GT folder, but the pose source is {source}", d,
+                             f"give {d.parent.parent / source / '7scenes'} or the folder that holds pgt/")
+        return d
+    raise InputError(f"no {source} pseudo-GT lists here: expected {d / 'pgt' / source / '7scenes'}/ (a clone of the "
+                     f"published repository), {d / source / '7scenes'}/ (its pgt folder) or <scene>_train.txt and "
+                     "<scene>_test.txt in the folder itself", d, PGT_HINT)
+
+
+def _published_lists(folder: Path, scene: str) -> list[Path]:
+    files = {split: folder / f"{scene}_{split}.txt" for split in ("train", "test")}
+    for split, f in files.items():
+        if not f.exists():
+            raise InputError(f"the {split} list of scene {scene} is missing from this pseudo-GT folder (expected "
+                             f"{f.name})", folder, PGT_HINT)
+    return list(files.values())
+
+
+def pgt_lists(root, scene_dir: Path, source: str, pgt_dir=None) -> list[Path]:
+    """The pseudo-GT list files of a scene: the published ``<scene>_train.txt`` and ``<scene>_test.txt`` of
+    ``pgt_dir`` (any form :func:`published_pgt_folder` takes); without it, those of ``root/pgt`` when that folder
+    holds ``<source>/7scenes/``, else the scene's own ``pgt/<source>_<scene>.txt``."""
+    name = scene_dir.name
+    if pgt_dir is not None:
+        return _published_lists(published_pgt_folder(pgt_dir, source), name)
+    per_scene = scene_dir / "pgt" / f"{source}_{name}.txt"
+    default = Path(root) / "pgt" / source / "7scenes"
+    if default.is_dir():
+        if any((default / f"{name}_{split}.txt").exists() for split in ("train", "test")) or not per_scene.exists():
+            return _published_lists(default, name)
+        logger.info("%s has no %s lists for %s: reading %s", default, source, name, per_scene)
+    return [per_scene]
+
+
+def read_pgt_lists(files: list[Path]) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """:func:`read_pgt_list` of each file, merged; a frame listed in two files is an error."""
+    poses, focals, where = {}, {}, {}
+    for f in files:
+        p, fo = read_pgt_list(f)
+        both = sorted(set(p) & set(poses))
+        if both:
+            raise InputError(f"{len(both)} frame(s) are also in {where[both[0]].name}, e.g. {both[0]}", f)
+        poses.update(p)
+        focals.update(fo)
+        where.update(dict.fromkeys(p, f))
+    return poses, focals
 
 
 def _frame_key(name: str) -> str:
@@ -160,8 +245,9 @@ def _color_path(seq_dir: Path, idx: str) -> Path:
 
 
 def _read_sequence(scene_dir: Path, seq: int, step: int, camera: Camera, dcam, c_from_d, conf, pgt, meta_name,
-                   is_query: bool = False, bad: list | None = None):
-    """Views of one sequence. A frame that cannot be used raises InputError, except:
+                   is_query: bool = False, bad: list | None = None, cams: dict | None = None):
+    """Views of one sequence; ``cams`` holds the camera of each frame key whose pseudo-GT line gives a focal
+    (others take ``camera``). A frame that cannot be used raises InputError, except:
     - a query whose ground-truth pose is invalid is kept with ``cam_from_world=None`` and the reason
       in ``meta["gt_error"]`` (it is skipped by the evaluation and reported, not counted);
     - with ``conf.skip_bad_frames`` a bad mapping frame is left out and the reason appended to ``bad``.
@@ -216,7 +302,7 @@ def _read_sequence(scene_dir: Path, seq: int, step: int, camera: Camera, dcam, c
         views.append(
             View(
                 name=name,
-                camera=camera,
+                camera=(cams or {}).get(key, camera),
                 cam_from_world=cfw,
                 color_path=color,
                 depth_path=depth if depth.exists() else None,
@@ -227,6 +313,16 @@ def _read_sequence(scene_dir: Path, seq: int, step: int, camera: Camera, dcam, c
             )
         )
     return views
+
+
+def _focal_cameras(camera: Camera, focals: dict[str, float]) -> dict[str, Camera]:
+    """{frame key: ``camera`` with fx = fy = the key's focal}; one Camera object per distinct focal, ``camera``
+    itself where the focal is its own."""
+    by_focal = {}
+    for f in sorted(set(focals.values())):
+        same = camera.fx == f and camera.fy == f
+        by_focal[f] = camera if same else Camera(camera.width, camera.height, (f, f, camera.cx, camera.cy))
+    return {k: by_focal[f] for k, f in focals.items()}
 
 
 def load_scene(root, scene: str, conf: SevenScenesConfig | None = None, dataset: str = "7scenes", **kw) -> Scene:
@@ -253,10 +349,22 @@ def load_scene(root, scene: str, conf: SevenScenesConfig | None = None, dataset:
     else:
         dcam = DEPTH_CAMERA
         c_from_d = conf.color_from_depth if conf.color_from_depth is not None else SEVENSCENES_COLOR_FROM_DEPTH
-    pgt, pgt_path = {}, None
+    pgt, cams, pgt_files = {}, {}, []
+    focal_source = "scene.json" if meta.get("intrinsics") else f"the 7-Scenes colour camera (fx = fy = {camera.fx:g})"
     if conf.pose_source != "posetxt":
-        pgt_path = scene_dir / "pgt" / f"{conf.pose_source}_{scene_dir.name}.txt"
-        pgt = read_pgt(pgt_path)
+        pgt_files = pgt_lists(root, scene_dir, conf.pose_source, conf.pgt_dir)
+        pgt, focals = read_pgt_lists(pgt_files)
+        cams = _focal_cameras(camera, focals)
+        where = ", ".join(str(f) for f in pgt_files)
+        logger.info("%s: %s poses and focal lengths from %s", scene_dir.name, conf.pose_source, where)
+        n_default = len(set(pgt) - set(focals))
+        focal_source = f"the {conf.pose_source} pseudo-GT lines ({where})" + (
+            f"; {n_default} line(s) give none and keep {focal_source}" if n_default else "")
+    elif conf.pgt_dir is not None:
+        raise InputError("pseudo-GT lists are given (--pgt) but the pose source is posetxt: choose --pose-source "
+                         "sfm or dslam", conf.pgt_dir)
+    # the train list for mapping frames, the test list for queries (one file in the per-scene layout)
+    pgt_train, pgt_test = (pgt_files[0], pgt_files[-1]) if pgt_files else (None, None)
     train = read_split(scene_dir / "TrainSplit.txt")
     test = read_split(scene_dir / "TestSplit.txt")
     if set(train) & set(test):
@@ -266,10 +374,13 @@ def load_scene(root, scene: str, conf: SevenScenesConfig | None = None, dataset:
     bad: list = []
     mapping = [
         v for s in train
-        for v in _read_sequence(scene_dir, s, conf.mapping_step, camera, dcam, c_from_d, conf, pgt, pgt_path, False, bad)
+        for v in _read_sequence(scene_dir, s, conf.mapping_step, camera, dcam, c_from_d, conf, pgt, pgt_train, False,
+                                bad, cams=cams)
     ]
     query = [
-        v for s in test for v in _read_sequence(scene_dir, s, conf.query_step, camera, dcam, c_from_d, conf, pgt, pgt_path, True)
+        v for s in test
+        for v in _read_sequence(scene_dir, s, conf.query_step, camera, dcam, c_from_d, conf, pgt, pgt_test, True,
+                                cams=cams)
     ]
     if conf.query_list:
         wanted = [ln.split()[0] for ln in Path(conf.query_list).read_text().splitlines() if ln.strip()]
@@ -296,5 +407,5 @@ def load_scene(root, scene: str, conf: SevenScenesConfig | None = None, dataset:
         gt_mesh=gt_mesh if gt_mesh.exists() else None,
         depth_registered=bool(meta.get("depth_registered", False)) or conf.register_depth,
         meta={**meta, "color_from_depth": None if c_from_d is None else np.asarray(c_from_d).tolist(),
-              "skipped_frames": bad},
+              "skipped_frames": bad, "pgt_files": [str(f) for f in pgt_files], "focal_source": focal_source},
     )

@@ -87,7 +87,7 @@ SYNTH_PRESETS = {
 # "small" with corrupted depth (2 % smooth per-frame warp + Kinect-like per-pixel noise): the setting of
 # the paper's claim that planes average depth error where lifting lines with the depth cannot
 SYNTH_PRESETS["small-noisy-depth"] = replace(SYNTH_PRESETS["small"], name="small-noisy-depth", depth_warp_sigma=0.02)
-# several rooms at "default"'s resolution and texture density (issue #16): "medium" (4-7 min) for CI-scale checks
+# several rooms at "default"'s resolution and texture density: "medium" (4-7 min) for CI-scale checks
 # (minutes), "large" for the benchmark (1,500 mapping + 500 query frames; ~1.5 s a frame per worker on a
 # shared 2-core machine, about 50 min with one)
 SYNTH_PRESETS["medium"] = replace(SYNTH_PRESETS["default"], name="medium", n_rooms=2, n_mapping=200, n_query=60)
