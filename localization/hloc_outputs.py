@@ -128,6 +128,13 @@ _RANK_WHY = {0: "the dense-depth model", 1: "the model triangulated from the fea
              2: "hloc's SIFT reference model, the only model in the folder"}
 
 
+def is_matches_file(path: Path) -> bool:
+    """hloc names a matches file ``<features stem>_<matcher>_<pairs stem>.h5``: it starts with another .h5 file's
+    stem and an underscore (or says 'match' in its name)."""
+    return "match" in path.name.lower() or any(path.name.startswith(q.stem + "_") for q in path.parent.glob("*.h5")
+                                               if q != path)
+
+
 def choose_model(folder: Path, fits=None) -> tuple[Path, str]:
     """The model of the hloc folder by the rule of the module docstring; ``fits(model_dir) -> bool`` breaks a tie
     (the model triangulated from the chosen features)."""
@@ -226,14 +233,15 @@ def choose_matches(folder: Path, matches_files: list[Path], pairs: list[tuple[st
             return holding[0], f"the matches file that holds the query pairs' first pair {pairs[0]}"
         cands = holding or cands
     if not cands:
-        raise InputError("no matches file (*.h5 with 'match' in its name) in the hloc folder", folder,
+        raise InputError("no matches file (<features>_<matcher>_<pairs>.h5, or *.h5 with 'match' in its name) in the "
+                         "hloc folder", folder,
                          "give it with --hloc-matches")
     raise InputError(f"cannot tell which matches file belongs to the query pairs {pairs_path.name}: "
                      f"{[m.name for m in cands]}", folder, "choose one with --hloc-matches")
 
 
 def choose_features(folder: Path, matches: Path) -> tuple[Path, str]:
-    feats = [p for p in sorted(folder.glob("*.h5")) if "match" not in p.name.lower()]
+    feats = [p for p in sorted(folder.glob("*.h5")) if not is_matches_file(p)]
     named = [p for p in feats if matches.name.startswith(p.stem + "_")]
     if named:
         best = max(named, key=lambda p: len(p.stem))
@@ -241,7 +249,7 @@ def choose_features(folder: Path, matches: Path) -> tuple[Path, str]:
     if len(feats) == 1:
         return feats[0], "the only features file in the hloc folder"
     if not feats:
-        raise InputError("no features file (*.h5 without 'match' in its name) in the hloc folder", folder,
+        raise InputError("no features file in the hloc folder (only matches files)", folder,
                          "give it with --hloc-features")
     raise InputError(f"cannot tell which features file the matches {matches.name} were made from: "
                      f"{[p.name for p in feats]}", folder, "choose one with --hloc-features")
@@ -256,7 +264,7 @@ def find_hloc_files(hloc: HlocOutputs, scene) -> HlocFiles:
         raise InputError(f"hloc output folder for scene {scene.name} is missing", folder,
                          "--hloc takes the folder that holds one folder per scene, as hloc's outputs/7scenes/")
     reasons = {}
-    matches_files = [p for p in sorted(folder.glob("*.h5")) if "match" in p.name.lower()]
+    matches_files = [p for p in sorted(folder.glob("*.h5")) if is_matches_file(p)]
     pairs = hloc.override("pairs", scene.name)
     if pairs is None:
         pairs, reasons["pairs"] = choose_pairs(folder, scene, matches_files)
