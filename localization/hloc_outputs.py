@@ -104,16 +104,18 @@ def as_hloc_outputs(hloc) -> Optional[HlocOutputs]:
 # the rules
 # ----------------------------------------------------------------------------------------------
 def find_models(folder: Path, depth: int = 2) -> list[Path]:
-    """Folders under ``folder`` (itself included, at most ``depth`` levels down) that hold a COLMAP model."""
-    found, level = [], [folder]
+    """Folders under ``folder`` (itself included, at most ``depth`` levels down) that hold a COLMAP model, the
+    shallowest of each top-level folder (hloc's reconstruction leaves ``models/0`` inside the model it copies out)."""
+    found, level = {}, [folder]
     for _ in range(depth + 1):
         nxt = []
         for d in level:
-            if any((d / f).exists() for f in _MODEL_FILES):
-                found.append(d)
+            top = (d.relative_to(folder).parts or ("",))[0]
+            if top not in found and any((d / f).exists() for f in _MODEL_FILES):
+                found[top] = d
             nxt += sorted(p for p in d.iterdir() if p.is_dir()) if d.is_dir() else []
         level = nxt
-    return found
+    return list(found.values())
 
 
 def _model_rank(path: Path, folder: Path) -> int:

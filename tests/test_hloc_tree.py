@@ -242,3 +242,11 @@ def test_frame_message_names_the_pose_source_that_fits(redkitchen_root, tmp_path
     msg = str(e.value)
     assert "from the scene's posetxt poses" in msg and "its poses fit --pose-source sfm (0.0 cm)" in msg
     assert "dslam" not in msg.split("fit --pose-source")[1]
+
+
+def test_a_model_copied_out_of_models_0_is_one_model(built, tmp_path):
+    outputs, data = make_hloc_tree(built, tmp_path)
+    model = outputs / SCENE / "sfm_superpoint+superglue"
+    shutil.copytree(model, model / "models" / "0", ignore=shutil.ignore_patterns("models"))
+    files = find_hloc_files(HlocOutputs(outputs), load_scene("synthetic", data, SCENE))
+    assert files.sfm == model
