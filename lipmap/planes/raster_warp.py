@@ -1,0 +1,570 @@
+"""The fused plane rasterizer: NVIDIA Warp kernels that run the same source on CPU and CUDA.
+
+The shape of gsplat's rasterizer and of the reference's ``renderCUDA``:
+
+1. per plane (``_bin_planes``): the rectangle dilated to its weight-1e-4 footprint, clipped to the
+   near plane and projected; its screen box as a tile range, and its nearest depth;
+2. tile binning: one (tile, depth) key per covered tile (``_emit_pairs``), sorted (``torch.sort``),
+   so each tile holds its planes nearest first;
+3. one program per pixel (``_raster_fwd``) walks its tile's planes, keeps the M nearest hits sorted
+   by (depth, plane index) in registers, stops once no later plane can reach the pixel (its nearest
+   depth lies behind the M-th hit or behind the point where the transmittance fell below 1e-4),
+   and composites them front to back;
+4. one reverse program per pixel (``_raster_bwd``) accumulates the per-plane gradients.
+
+It takes the camera-frame planes from :func:`lipmap.planes.render._planes_in_camera` (torch, so the
+gradients reach centre, quaternion and radii through autograd) and computes every pair with the
+arithmetic of :func:`lipmap.planes.render._pair_terms`, transcribed in ``_pair_geo`` and ``_weight``:
+the torch backend is this module's reference twin, and the tests hold both to the same hits. Float32 only.
+
+Warp is imported on first use: ``import lipmap`` works without it, and ``backend="auto"`` falls back
+to torch. Kernels compile on first launch per device (a few seconds; cached on disk afterwards).
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+import math
+import os
+
+import torch
+
+from .primitives import NEAR, SPLAT_MARGIN, TRANSMITTANCE_EPS, WEIGHT_EPS
+
+MAX_HITS_CAP = 32  # the per-pixel hit list lives in registers: M <= 32 (the reference composites up to 30)
+INSTALL_HINT = "pip install warp-lang==1.19.0 (a dependency of lipmap), or pass backend='torch'"
+# a plane's binned nearest depth, quantized into the sort key: 2^-16 m steps up to 32 km
+_DEPTH_STEPS = 65536.0
+# relative slack on the early exit: a pair's depth and its plane's nearest vertex depth round differently
+_EXIT_SLACK = 1e-4
+
+
+def unsupported(device: torch.device, dtype: torch.dtype, max_hits: int) -> str | None:
+    """Why the Warp kernels cannot render these tensors (None: they can)."""
+    if dtype != torch.float32:
+        return f"it renders float32, not {dtype}"
+    if max_hits > MAX_HITS_CAP:
+        return f"it keeps at most {MAX_HITS_CAP} hits per pixel, not {max_hits}"
+    device = torch.device(device)
+    if device.type not in ("cpu", "cuda"):
+        return f"it runs on CPU and CUDA, not {device.type}"
+    kn = _kernels()
+    if kn is None:
+        return "the warp-lang package is not installed"
+    if device.type == "cuda" and not kn["wp"].is_cuda_available():
+        return "Warp finds no CUDA driver"
+    return None
+
+
+@functools.lru_cache(maxsize=None)
+def _kernels():
+    """The compiled-on-demand kernels, or None without warp-lang."""
+    try:
+        import warp as wp
+    except ImportError:
+        return None
+    # Warp's greeting and its "module loaded" lines are INFO; this level is process-wide
+    wp.config.log_level = wp.LOG_WARNING
+    # Warp probes for a CUDA driver on init and prints a warning when there is none; a CPU-only machine is fine
+    with _quiet_stderr(not torch.cuda.is_available()):
+        wp.init()
+    return _define(wp)
+
+
+@contextlib.contextmanager
+def _quiet_stderr(active: bool):
+    if not active:
+        yield
+        return
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _define(wp):
+    """Define the kernels (one Warp module); they compile on first launch per device."""
+    vecM = wp.types.vector(length=MAX_HITS_CAP, dtype=wp.float32)
+    vecMi = wp.types.vector(length=MAX_HITS_CAP, dtype=wp.int32)
+    near, weps, teps = wp.constant(NEAR), wp.constant(WEIGHT_EPS), wp.constant(TRANSMITTANCE_EPS)
+    steps, slack = wp.constant(_DEPTH_STEPS), wp.constant(_EXIT_SLACK)
+    inf = wp.constant(math.inf)
+    # below this the splat weight is certainly under WEIGHT_EPS: such pairs skip the exponential
+    z_reject = wp.constant(-1.01 * SPLAT_MARGIN)
+
+    @wp.func
+    def _pair_geo(c: wp.vec3, ax: wp.vec3, ay: wp.vec3, n: wp.vec3, r: wp.vec4, nc: float, u: float, v: float,
+                  lam: float):
+        # render._pair_terms, operation by operation (same order: same rounding, same hits), up to the weight
+        den = n[0] * u + n[1] * v + n[2]
+        t = nc / den
+        qx = t * u - c[0]
+        qy = t * v - c[1]
+        qz = t - c[2]
+        px = qx * ax[0] + qy * ax[1] + qz * ax[2]
+        py = qx * ay[0] + qy * ay[1] + qz * ay[2]
+        rx = r[1]
+        if px > 0.0:
+            rx = r[0]
+        ry = r[3]
+        if py > 0.0:
+            ry = r[2]
+        zx = lam * (rx - wp.abs(px))
+        zy = lam * (ry - wp.abs(py))
+        z = zy
+        if zx < zy:
+            z = zx
+        return t, den, wp.vec3(qx, qy, qz), px, py, zx, zy, z
+
+    @wp.func
+    def _sigmoid(z: float):
+        return 1.0 / (1.0 + wp.exp(-z))
+
+    @wp.func
+    def _weight(z: float, s: float):
+        w = 2.0 * s
+        if z >= 0.0:
+            w = 1.0
+        return w
+
+    @wp.func
+    def _tile_touches(tx: int, ty: int, tile: int, width: int, height: int, u_tab: wp.array(dtype=float),
+                      v_tab: wp.array(dtype=float), c: wp.vec3, ax: wp.vec3, ay: wp.vec3, n: wp.vec3, r: wp.vec4,
+                      nc: float, mg: float):
+        # False when the rays of the tile's 4 corner pixels all meet the plane in front of the near plane and all
+        # lie beyond one edge of its dilated rectangle: the hits of the tile's pixels are convex combinations of
+        # the corners' (1 / depth is affine in the pixel), so none of them can reach the rectangle
+        x0 = tx * tile
+        y0 = ty * tile
+        x1 = wp.min(x0 + tile - 1, width - 1)
+        y1 = wp.min(y0 + tile - 1, height - 1)
+        out_xp, out_xm, out_yp, out_ym = int(1), int(1), int(1), int(1)
+        for i in range(4):
+            col = x0
+            if i == 1 or i == 2:
+                col = x1
+            row = y0
+            if i >= 2:
+                row = y1
+            t, den, q, px, py, zx, zy, z = _pair_geo(c, ax, ay, n, r, nc, u_tab[col], v_tab[row], 1.0)
+            if not (t > near and t < inf):
+                return True
+            if not (px > r[0] + mg):
+                out_xp = 0
+            if not (px < -(r[1] + mg)):
+                out_xm = 0
+            if not (py > r[2] + mg):
+                out_yp = 0
+            if not (py < -(r[3] + mg)):
+                out_ym = 0
+        return out_xp + out_xm + out_yp + out_ym == 0
+
+    @wp.kernel(enable_backward=False)
+    def _bin_planes(
+        c: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3), ay: wp.array(dtype=wp.vec3),
+        n: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec4), nc: wp.array(dtype=float),
+        dilate: float, fx: float, fy: float, cx: float, cy: float, width: int, height: int, tile: int,
+        u_tab: wp.array(dtype=float), v_tab: wp.array(dtype=float),
+        rect: wp.array(dtype=wp.vec4i), count: wp.array(dtype=wp.int32), zmin: wp.array(dtype=float),
+    ):
+        k = wp.tid()
+        count[k] = 0
+        zmin[k] = inf
+        ck, xk, yk, nk, rk = c[k], ax[k], ay[k], n[k], r[k]
+        if not (wp.isfinite(ck) and wp.isfinite(xk) and wp.isfinite(yk) and wp.isfinite(nk) and wp.isfinite(rk)):
+            return
+        if not (wp.abs(nc[k]) > 1.0e-9):  # a plane through the camera centre is seen edge-on
+            return
+        # the dilated rectangle's corners v1..v4 and, for each edge crossing z = NEAR, the crossing point
+        u0, u1, v0, v1, zm = inf, -inf, inf, -inf, inf
+        any_pt = int(0)
+        for i in range(4):
+            j = (i + 1) % 4
+            sx_i = rk[0] + dilate
+            if i >= 2:
+                sx_i = -(rk[1] + dilate)
+            sy_i = rk[2] + dilate
+            if i == 1 or i == 2:
+                sy_i = -(rk[3] + dilate)
+            sx_j = rk[0] + dilate
+            if j >= 2:
+                sx_j = -(rk[1] + dilate)
+            sy_j = rk[2] + dilate
+            if j == 1 or j == 2:
+                sy_j = -(rk[3] + dilate)
+            a = ck + sx_i * xk + sy_i * yk
+            b = ck + sx_j * xk + sy_j * yk
+            for e in range(2):
+                p = a
+                ok = a[2] >= near
+                if e == 1:
+                    ok = (a[2] - near) * (b[2] - near) < 0.0
+                    p = a + wp.clamp((near - a[2]) / (b[2] - a[2]), 0.0, 1.0) * (b - a)
+                if ok:
+                    zz = wp.max(p[2], near)
+                    pu = fx * p[0] / zz + cx
+                    pv = fy * p[1] / zz + cy
+                    u0, u1 = wp.min(u0, pu), wp.max(u1, pu)
+                    v0, v1 = wp.min(v0, pv), wp.max(v1, pv)
+                    zm = wp.min(zm, zz)
+                    any_pt = 1
+        if any_pt == 0 or u1 < 0.0 or u0 > float(width) or v1 < 0.0 or v0 > float(height):
+            return
+        wf, hf = float(width) - 1.0e-3, float(height) - 1.0e-3
+        tx0 = int(wp.clamp(u0, 0.0, wf) / float(tile))
+        tx1 = int(wp.clamp(u1, 0.0, wf) / float(tile))
+        ty0 = int(wp.clamp(v0, 0.0, hf) / float(tile))
+        ty1 = int(wp.clamp(v1, 0.0, hf) / float(tile))
+        rect[k] = wp.vec4i(tx0, ty0, tx1, ty1)
+        zmin[k] = zm
+        cnt = int(0)
+        for ty in range(ty0, ty1 + 1):
+            for tx in range(tx0, tx1 + 1):
+                if _tile_touches(tx, ty, tile, width, height, u_tab, v_tab, ck, xk, yk, nk, rk, nc[k], dilate):
+                    cnt += 1
+        count[k] = cnt
+
+    @wp.kernel(enable_backward=False)
+    def _emit_pairs(
+        c: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3), ay: wp.array(dtype=wp.vec3),
+        n: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec4), nc: wp.array(dtype=float), dilate: float,
+        width: int, height: int, tile: int, u_tab: wp.array(dtype=float), v_tab: wp.array(dtype=float),
+        rect: wp.array(dtype=wp.vec4i), count: wp.array(dtype=wp.int32), offset: wp.array(dtype=wp.int64),
+        zmin: wp.array(dtype=float), ntx: int, keys: wp.array(dtype=wp.int64), planes: wp.array(dtype=wp.int32),
+    ):
+        k = wp.tid()
+        if count[k] == 0:
+            return
+        rc = rect[k]
+        # key: tile in the high bits, the quantized nearest depth in the low 32
+        dq = wp.int64(wp.min(zmin[k] * steps, 4.0e9))
+        o = offset[k] - wp.int64(count[k])
+        for ty in range(rc[1], rc[3] + 1):
+            for tx in range(rc[0], rc[2] + 1):
+                if _tile_touches(tx, ty, tile, width, height, u_tab, v_tab, c[k], ax[k], ay[k], n[k], r[k], nc[k],
+                                 dilate):
+                    keys[o] = wp.int64(ty * ntx + tx) * wp.int64(4294967296) + dq
+                    planes[o] = k
+                    o += wp.int64(1)
+
+    @wp.kernel(enable_backward=False)
+    def _raster_fwd(
+        start: wp.array(dtype=wp.int32), cand: wp.array(dtype=wp.int32), zmin: wp.array(dtype=float),
+        c: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3), ay: wp.array(dtype=wp.vec3),
+        n: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec4), nc: wp.array(dtype=float),
+        u_tab: wp.array(dtype=float), v_tab: wp.array(dtype=float), width: int, height: int, ntx: int, tile: int,
+        lam: float, max_hits: int, chunk: int, n_chunks: int,
+        hits: wp.array2d(dtype=wp.int64), depth: wp.array(dtype=float), alpha: wp.array(dtype=float),
+        normal: wp.array(dtype=wp.vec3),
+    ):
+        tid = wp.tid()
+        tt = tile * tile
+        ti = (tid // tt) * n_chunks + chunk  # tiles interleaved over the CPU threads' launches
+        loc = tid - (tid // tt) * tt
+        if ti >= start.shape[0] - 1:
+            return
+        col = (ti % ntx) * tile + loc % tile
+        row = (ti // ntx) * tile + loc // tile
+        if col >= width or row >= height:
+            return
+        p = row * width + col
+        u, v = u_tab[col], v_tab[row]
+        lt, lw = vecM(), vecM()
+        lk = vecMi()
+        m = int(0)
+        cut = inf
+        for idx in range(start[ti], start[ti + 1]):
+            k = cand[idx]
+            zk = zmin[k]
+            if zk > cut:
+                # the tile's planes are sorted by quantized nearest depth: none after this one can be nearer
+                if wp.floor(zk * steps) / steps > cut:
+                    break
+                continue
+            t, den, q, px, py, zx, zy, z = _pair_geo(c[k], ax[k], ay[k], n[k], r[k], nc[k], u, v, lam)
+            if not (t > near and t < inf) or z < z_reject:
+                continue
+            w = _weight(z, _sigmoid(z))
+            if not (w > weps):
+                continue
+            pos = m
+            while pos > 0 and (lt[pos - 1] > t or (lt[pos - 1] == t and lk[pos - 1] > k)):
+                pos -= 1
+            if pos >= max_hits:
+                continue
+            j = wp.min(m, max_hits - 1)
+            while j > pos:
+                lt[j] = lt[j - 1]
+                lw[j] = lw[j - 1]
+                lk[j] = lk[j - 1]
+                j -= 1
+            lt[pos] = t
+            lw[pos] = w
+            lk[pos] = k
+            m = wp.min(m + 1, max_hits)
+            # the depth beyond which no plane can change this pixel: the last hit in front of the point where
+            # the transmittance falls below TRANSMITTANCE_EPS, or the M-th hit
+            cut = inf
+            T = float(1.0)
+            for jj in range(m):
+                if T < teps:
+                    cut = lt[jj - 1]
+                    break
+                T = T * (1.0 - lw[jj])
+            if cut == inf and (m == max_hits or T < teps):
+                cut = lt[m - 1]
+            if cut < inf:
+                cut = cut * (1.0 + slack) + 1.0e-6
+        T = float(1.0)
+        dsum, asum = float(0.0), float(0.0)
+        nsum = wp.vec3(0.0, 0.0, 0.0)
+        used = int(0)
+        for jj in range(m):
+            if T < teps:
+                break
+            tw = T * lw[jj]
+            dsum += tw * lt[jj]
+            asum += tw
+            nsum += tw * n[lk[jj]]
+            T = T * (1.0 - lw[jj])
+            used = jj + 1
+        for jj in range(max_hits):
+            if jj < used:
+                hits[p, jj] = wp.int64(lk[jj])
+            else:
+                hits[p, jj] = wp.int64(-1)
+        depth[p] = dsum
+        alpha[p] = asum
+        normal[p] = nsum
+
+    @wp.kernel(enable_backward=False)
+    def _raster_bwd(
+        hits: wp.array2d(dtype=wp.int64),
+        c: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3), ay: wp.array(dtype=wp.vec3),
+        n: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec4), nc: wp.array(dtype=float),
+        u_tab: wp.array(dtype=float), v_tab: wp.array(dtype=float), width: int, lam: float, chunk: int,
+        n_chunks: int, v_depth: wp.array(dtype=float), v_normal: wp.array(dtype=wp.vec3),
+        v_alpha: wp.array(dtype=float), g_c: wp.array(dtype=wp.vec3), g_ax: wp.array(dtype=wp.vec3),
+        g_ay: wp.array(dtype=wp.vec3), g_n: wp.array(dtype=wp.vec3), g_r: wp.array(dtype=wp.vec4),
+    ):
+        p = wp.tid() * n_chunks + chunk
+        if p >= hits.shape[0]:
+            return
+        if hits[p, 0] < wp.int64(0):
+            return
+        col = p % width
+        row = p // width
+        u, v = u_tab[col], v_tab[row]
+        d = wp.vec3(u, v, 1.0)
+        vd, va, vn = v_depth[p], v_alpha[p], v_normal[p]
+        lT, lG, lS = vecM(), vecM(), vecM()
+        m = int(0)
+        T = float(1.0)
+        for j in range(hits.shape[1]):
+            kk = hits[p, j]
+            if kk < wp.int64(0):
+                break
+            k = int(kk)
+            t, den, q, px, py, zx, zy, z = _pair_geo(c[k], ax[k], ay[k], n[k], r[k], nc[k], u, v, lam)
+            s = _sigmoid(z)
+            lT[j] = T
+            lG[j] = vd * t + va + wp.dot(vn, n[k])
+            lS[j] = s
+            T = T * (1.0 - _weight(z, s))
+            m = j + 1
+        # back to front: Q = sum over the hits behind of G_l w_l prod (1 - w_i) between (see render._Composite)
+        Q = float(0.0)
+        for jj in range(m):
+            j = m - 1 - jj
+            k = int(hits[p, j])
+            t, den, q, px, py, zx, zy, z = _pair_geo(c[k], ax[k], ay[k], n[k], r[k], nc[k], u, v, lam)
+            Tj, Gj, s = lT[j], lG[j], lS[j]
+            w = _weight(z, s)
+            dw = Tj * (Gj - Q)
+            Q = Gj * w + (1.0 - w) * Q
+            tw = Tj * w
+            dz = float(0.0)
+            if not (z >= 0.0):
+                dz = dw * 2.0 * s * (1.0 - s)
+            fx_, fy_ = float(0.0), float(0.0)
+            if zx < zy:
+                fx_ = 1.0
+            elif zy < zx:
+                fy_ = 1.0
+            elif zx == zy:
+                fx_, fy_ = 0.5, 0.5
+            dzx, dzy = dz * fx_, dz * fy_
+            dpx = -lam * wp.sign(px) * dzx
+            dpy = -lam * wp.sign(py) * dzy
+            if px == 0.0:
+                dpx = 0.0
+            if py == 0.0:
+                dpy = 0.0
+            dq = dpx * ax[k] + dpy * ay[k]
+            dt = tw * vd + wp.dot(dq, d)
+            dt_den = dt / den
+            wp.atomic_add(g_c, k, n[k] * dt_den - dq)
+            wp.atomic_add(g_ax, k, dpx * q)
+            wp.atomic_add(g_ay, k, dpy * q)
+            wp.atomic_add(g_n, k, tw * vn - q * dt_den)
+            # the radius on the side of the hit gets the gradient: x+ where px > 0, x- otherwise (same along Y)
+            sx = float(0.0)
+            if px > 0.0:
+                sx = 1.0
+            sy = float(0.0)
+            if py > 0.0:
+                sy = 1.0
+            wp.atomic_add(g_r, k, lam * wp.vec4(sx * dzx, (1.0 - sx) * dzx, sy * dzy, (1.0 - sy) * dzy))
+
+    return dict(wp=wp, bin=_bin_planes, emit=_emit_pairs, fwd=_raster_fwd, bwd=_raster_bwd)
+
+
+def _device(t: torch.Tensor) -> str:
+    return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
+
+
+def _wa(wp, t: torch.Tensor, dtype=None):
+    """A Warp view of a contiguous torch tensor (no copy)."""
+    return wp.from_torch(t.contiguous(), dtype=dtype, requires_grad=False)
+
+
+# the CPU reverse pass accumulates into this many gradient buffers (pixels interleaved), summed in order: a fixed
+# split, so the gradients do not depend on how many threads run it
+_CPU_GRAD_SPLIT = 4
+
+
+def _n_chunks(t: torch.Tensor) -> int:
+    """Launches per kernel: Warp runs a CPU launch on one thread, so the CPU work is split over torch's threads."""
+    return 1 if t.device.type == "cuda" else max(1, torch.get_num_threads())
+
+
+@functools.lru_cache(maxsize=None)
+def _pool(n: int):
+    from concurrent.futures import ThreadPoolExecutor
+
+    return ThreadPoolExecutor(max_workers=n, thread_name_prefix="lipmap-raster")
+
+
+def _launch_chunks(wp, kernel, dim_per_chunk: int, device: str, n: int, args_of, threads: int | None = None):
+    """Launch ``kernel`` as ``n`` interleaved chunks, ``args_of(chunk)`` giving each one's arguments, on ``threads``
+    threads (default ``n``).
+
+    CPU chunks run on a thread pool (a CPU launch releases the GIL); their arguments are packed here, on
+    the calling thread.
+    """
+    if dim_per_chunk == 0:
+        return
+    cmds = [wp.launch(kernel, dim=dim_per_chunk, device=device, inputs=args_of(h), record_cmd=True) for h in range(n)]
+    threads = min(n, threads or n)
+    if threads == 1:
+        for cmd in cmds:
+            cmd.launch()
+        return
+    for f in [_pool(threads).submit(cmd.launch) for cmd in cmds]:
+        f.result()
+
+
+class _Raster(torch.autograd.Function):
+    """Fused forward (selection + compositing) and reverse pass over camera-frame planes.
+
+    Inputs c, X, Y, n (K, 3), r (K, 4) as :class:`lipmap.planes.render._Composite`'s; outputs depth (P,),
+    normal (P, 3), alpha (P,) and hits (P, M) int64 (not differentiable).
+    """
+
+    @staticmethod
+    def forward(ctx, c, ax, ay, n, r, nc, u, v, start, cand, zmin, dims):
+        kn = _kernels()
+        wp = kn["wp"]
+        width, height, ntx, tile, lam, max_hits = dims
+        dev, P = c.device, width * height
+        hits = torch.empty(P, max_hits, dtype=torch.int64, device=dev)
+        depth = torch.empty(P, dtype=torch.float32, device=dev)
+        alpha = torch.empty(P, dtype=torch.float32, device=dev)
+        normal = torch.empty(P, 3, dtype=torch.float32, device=dev)
+        n_chunks = _n_chunks(c)
+        v3 = wp.vec3
+        common = [_wa(wp, start), _wa(wp, cand), _wa(wp, zmin), _wa(wp, c, v3), _wa(wp, ax, v3), _wa(wp, ay, v3),
+                  _wa(wp, n, v3), _wa(wp, r, wp.vec4), _wa(wp, nc), _wa(wp, u), _wa(wp, v), width, height, ntx, tile,
+                  lam, max_hits]
+        outs = [_wa(wp, hits), _wa(wp, depth), _wa(wp, alpha), _wa(wp, normal, v3)]
+        tiles_per_chunk = -(-(len(start) - 1) // n_chunks)
+        _launch_chunks(wp, kn["fwd"], tiles_per_chunk * tile * tile, _device(c), n_chunks,
+                       lambda h: common + [h, n_chunks] + outs)
+        ctx.save_for_backward(c, ax, ay, n, r, nc, u, v, hits)
+        ctx.dims = dims
+        ctx.mark_non_differentiable(hits)
+        return depth, normal, alpha, hits
+
+    @staticmethod
+    def backward(ctx, v_depth, v_normal, v_alpha, _v_hits):
+        c, ax, ay, n, r, nc, u, v, hits = ctx.saved_tensors
+        width, height, ntx, tile, lam, max_hits = ctx.dims
+        kn = _kernels()
+        wp = kn["wp"]
+        P, dev = width * height, c.device
+        v_depth = torch.zeros(P, device=dev) if v_depth is None else v_depth
+        v_alpha = torch.zeros(P, device=dev) if v_alpha is None else v_alpha
+        v_normal = torch.zeros(P, 3, device=dev) if v_normal is None else v_normal
+        threads = _n_chunks(c)
+        n_chunks = 1 if dev.type == "cuda" else _CPU_GRAD_SPLIT
+        # one set of gradient buffers per chunk: Warp's CPU atomics are plain adds, not thread-safe ones
+        grads = [torch.zeros((n_chunks, *x.shape), dtype=x.dtype, device=dev) for x in (c, ax, ay, n, r)]
+        v3 = wp.vec3
+        common = [_wa(wp, hits), _wa(wp, c, v3), _wa(wp, ax, v3), _wa(wp, ay, v3), _wa(wp, n, v3),
+                  _wa(wp, r, wp.vec4), _wa(wp, nc), _wa(wp, u), _wa(wp, v), width, lam]
+        vs = [_wa(wp, v_depth), _wa(wp, v_normal, v3), _wa(wp, v_alpha)]
+        types = (v3, v3, v3, v3, wp.vec4)
+        _launch_chunks(wp, kn["bwd"], -(-P // n_chunks), _device(c), n_chunks,
+                       lambda h: common + [h, n_chunks] + vs + [_wa(wp, g[h], ty) for g, ty in zip(grads, types)],
+                       threads)
+        grads = [g[0] if n_chunks == 1 else g.sum(0) for g in grads]
+        return (*grads, None, None, None, None, None, None, None)
+
+
+def rasterize(cam, u, v, intrinsics, width: int, height: int, lam: float, max_hits: int, tile_size: int,
+              dilate: float):
+    """Render camera-frame planes ``cam`` = (c, X, Y, n, r) with the Warp kernels.
+
+    ``u`` (W,), ``v`` (H,): the pixel rays (:func:`lipmap.planes.render._pixel_axes`); ``dilate``: how far beyond
+    its rectangle a plane is binned (its weight-1e-4 footprint and a margin). Returns depth (H, W), normal
+    (H, W, 3), alpha (H, W) and hits (H W, M) int64, nearest first (depth ties: lower index first), -1 padded;
+    the first three are differentiable w.r.t. ``cam``.
+    """
+    kn = _kernels()
+    wp = kn["wp"]
+    c, ax, ay, n, r = (x.contiguous() for x in cam)
+    dev, K = c.device, len(c)
+    wdev = _device(c)
+    fx, fy, cx, cy = intrinsics
+    ntx, nty = -(-width // tile_size), -(-height // tile_size)
+    with torch.no_grad():
+        nc = (n * c).sum(-1)  # the same expression as render._plane_table's: the same rounding
+        rect = torch.empty(K, 4, dtype=torch.int32, device=dev)
+        count = torch.empty(K, dtype=torch.int32, device=dev)
+        zmin = torch.empty(K, dtype=torch.float32, device=dev)
+        v3 = wp.vec3
+        planes = [_wa(wp, c.detach(), v3), _wa(wp, ax.detach(), v3), _wa(wp, ay.detach(), v3),
+                  _wa(wp, n.detach(), v3), _wa(wp, r.detach(), wp.vec4), _wa(wp, nc)]
+        if K:
+            wp.launch(kn["bin"], dim=K, device=wdev, inputs=planes + [
+                dilate, fx, fy, cx, cy, width, height, tile_size, _wa(wp, u), _wa(wp, v), _wa(wp, rect, wp.vec4i),
+                _wa(wp, count), _wa(wp, zmin)])
+        offset = torch.cumsum(count, 0, dtype=torch.int64)
+        total = int(offset[-1]) if K else 0  # the step's one host sync: the size of the pair list
+        keys = torch.empty(total, dtype=torch.int64, device=dev)
+        pair_plane = torch.empty(total, dtype=torch.int32, device=dev)
+        if total:
+            wp.launch(kn["emit"], dim=K, device=wdev, inputs=planes + [
+                dilate, width, height, tile_size, _wa(wp, u), _wa(wp, v), _wa(wp, rect, wp.vec4i), _wa(wp, count),
+                _wa(wp, offset), _wa(wp, zmin), ntx, _wa(wp, keys), _wa(wp, pair_plane)])
+        keys, order = torch.sort(keys)
+        cand = pair_plane[order]
+        tiles = torch.arange(ntx * nty + 1, device=dev, dtype=torch.int64) << 32
+        start = torch.searchsorted(keys, tiles).to(torch.int32)
+    depth, normal, alpha, hits = _Raster.apply(c, ax, ay, n, r, nc, u, v, start, cand, zmin,
+                                               (width, height, ntx, tile_size, float(lam), max_hits))
+    return depth.reshape(height, width), normal.reshape(height, width, 3), alpha.reshape(height, width), hits
