@@ -18,7 +18,7 @@ DEVICE=${CHECK_DEVICE:-cuda}
 MAP_TIMEOUT=${MAP_TIMEOUT:-100}
 DATA=${DATA:-../shared/data/7scenes-redkitchen-mini}
 export LIPMAP_REQUIRE_WARP=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
-# a copy of a working tree is what a lent GPU machine gets: keep its figures, marked as from uncommitted code
+# a GPU machine may get a copy of a working tree with uncommitted changes: keep its figures, marked as such
 export LIPMAP_BENCH_ALLOW_DIRTY=${LIPMAP_BENCH_ALLOW_DIRTY:-1}
 mkdir -p "$OUT"
 SUMMARY="$OUT/summary.txt"
