@@ -9,6 +9,8 @@ PoseLib 2.0.5 facts this relies on (pinned by tests/test_estimate.py):
   2D points go in COLMAP convention - half a pixel off biases the pose (test_pixel_convention).
 - RANSAC is seeded through ``ransac_opt["seed"]`` (default 0 in PoseLib): same input -> same pose.
 - Without ``bundle_opt["loss_scale"]`` the binding uses 0.5 x max_reproj_error (Cauchy loss).
+- ``poselib.refine_absolute_pose(points2D, points3D, CameraPose, camera_dict, bundle_opt)`` is that same final
+  bundle alone, so RANSAC and refinement can be split to choose the loss scale from the RANSAC inliers.
 """
 from __future__ import annotations
 
@@ -25,7 +27,13 @@ from lipmap.poses import make_T
 
 @dataclass
 class PointPoseConfig:
-    """RANSAC + bundle options of the point-only initial pose (hloc's defaults)."""
+    """RANSAC + bundle options of the point-only initial pose (hloc's RANSAC threshold).
+
+    The final refinement (on the RANSAC inliers) uses a Cauchy loss whose scale is ``loss_scale`` px, or with
+    ``loss_scale=None`` the median reprojection error of the inliers at the RANSAC pose, clipped to
+    [``min_loss_scale``, 0.5 x ``max_reproj_error``]. ``loss_scale=6.0`` is PoseLib's binding default (the former
+    one here); COLMAP's refinement, the one of hloc's ``localize_sfm``, uses 1 px.
+    """
 
     max_reproj_error: float = 12.0  # px, as hloc's localize_sfm
     min_matches: int = 4  # fewer -> success=False without calling PoseLib
@@ -34,7 +42,10 @@ class PointPoseConfig:
     min_iterations: int = 1000
     max_iterations: int = 100_000
     success_prob: float = 0.9999
-    bundle: dict = field(default_factory=dict)  # extra PoseLib BundleOptions, e.g. {"loss_scale": 1.0}
+    # px; None: the inliers' own scale (fixed 6 px lets mismatches pull clean poses, 1 px drops real 1-3 px inliers)
+    loss_scale: Optional[float] = None
+    min_loss_scale: float = 1.0  # px, COLMAP's: below it the fit follows keypoint rounding (float16 in hloc's files)
+    bundle: dict = field(default_factory=dict)  # more PoseLib BundleOptions of the refinement: {"max_iterations": 50}
 
 
 def _camera_dict(camera) -> dict:
@@ -87,14 +98,25 @@ def estimate_pose_points(p2d: np.ndarray, p3d: np.ndarray, camera, conf: Optiona
         "max_iterations": int(conf.max_iterations),
         "success_prob": float(conf.success_prob),
     }
+    adaptive = conf.loss_scale is None
+    # adaptive: RANSAC alone first (its LO already fits the inliers), then the bundle at the scale they show
+    bundle = {"max_iterations": 0} if adaptive else {"loss_type": "CAUCHY", "loss_scale": float(conf.loss_scale),
+                                                     **conf.bundle}
     idx = np.flatnonzero(finite)
+    cam = _camera_dict(camera)
     try:
-        pose, info = poselib.estimate_absolute_pose(p2d[idx], p3d[idx], _camera_dict(camera), ransac, dict(conf.bundle))
+        pose, info = poselib.estimate_absolute_pose(p2d[idx], p3d[idx], cam, ransac, bundle)
+        inl = np.asarray(info.pop("inliers"), dtype=bool)
+        if adaptive and inl.sum() >= 4:
+            scale = adaptive_loss_scale(pose, p2d[idx][inl], p3d[idx][inl], cam, conf)
+            pose, _ = poselib.refine_absolute_pose(p2d[idx][inl], p3d[idx][inl], pose, cam,
+                                                   {"loss_type": "CAUCHY", "loss_scale": scale, **conf.bundle})
+            info["loss_scale"] = scale
     except Exception as e:  # PoseLib raises on malformed input only; keep the query as a failure
         logger.warning("PoseLib failed: %s", e)
         return _failure(n, f"PoseLib error: {e}")
     inliers = np.zeros(n, dtype=bool)
-    inliers[idx] = np.asarray(info.pop("inliers"), dtype=bool)
+    inliers[idx] = inl
     T = make_T(np.asarray(pose.R), np.asarray(pose.t))
     n_inl = int(inliers.sum())
     ok = bool(np.all(np.isfinite(T)) and n_inl >= max(conf.min_inliers, 4))
@@ -109,6 +131,23 @@ def estimate_pose_points(p2d: np.ndarray, p3d: np.ndarray, camera, conf: Optiona
     if not ok:
         out["reason"] = f"{n_inl} inliers < {max(conf.min_inliers, 4)}"
     return out
+
+
+def adaptive_loss_scale(pose, p2d: np.ndarray, p3d: np.ndarray, camera: dict, conf: PointPoseConfig) -> float:
+    """The Cauchy scale (px) of the adaptive refinement: the median reprojection error of the RANSAC inliers.
+
+    Args:
+        pose: PoseLib CameraPose (cam_from_world) found by RANSAC.
+        p2d: (K, 2) inlier pixels; p3d: (K, 3) their world points; camera: PoseLib camera dict (any model).
+    """
+    import poselib
+
+    cam = poselib.Camera(camera["model"], list(camera["params"]), int(camera["width"]), int(camera["height"]))
+    x = p3d @ np.asarray(pose.R).T + np.asarray(pose.t)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(cam.project(x[:, :2] / x[:, 2:]) - p2d, axis=1)
+    scale = np.median(err[np.isfinite(err)]) if np.isfinite(err).any() else np.inf
+    return float(np.clip(scale, conf.min_loss_scale, 0.5 * conf.max_reproj_error))
 
 
 def subsample_matches(n: int, N: Optional[int], seed: int, query_name: str) -> np.ndarray:

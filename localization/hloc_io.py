@@ -396,7 +396,11 @@ def read_sfm(sfm_dir):
     try:
         return pycolmap.Reconstruction(str(sfm_dir))
     except Exception as e:  # pycolmap raises plain RuntimeError/ValueError on corrupt files
-        raise InputError(f"cannot read the COLMAP model: {e}", sfm_dir) from None
+        hint = None
+        if "point3D_id" in str(e):  # hloc's create_reference_sfm drops images from tracks but not their 2D indices
+            hint = ("a track names 2D points of images the model no longer has, as in hloc's sfm_sift, which pycolmap 4 "
+                    "refuses; localize from the model triangulated from the features (e.g. sfm_superpoint+superglue)")
+        raise InputError(f"cannot read the COLMAP model: {str(e).strip().splitlines()[-1][:300]}", sfm_dir, hint) from None
 
 
 class ModelIndex:

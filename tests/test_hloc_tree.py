@@ -250,3 +250,54 @@ def test_a_model_copied_out_of_models_0_is_one_model(built, tmp_path):
     shutil.copytree(model, model / "models" / "0", ignore=shutil.ignore_patterns("models"))
     files = find_hloc_files(HlocOutputs(outputs), load_scene("synthetic", data, SCENE))
     assert files.sfm == model
+
+
+# ----------------------------------------------------------------------------------------------
+# files hloc's own code wrote (tests/data/hloc_7scenes/README.md: hloc c13273b, pycolmap 3.13, SIFT + NN-mutual)
+# ----------------------------------------------------------------------------------------------
+HLOC_FIXTURE = Path(__file__).parent / "data" / "hloc_7scenes"
+
+
+@pytest.fixture(scope="module")
+def hloc_written(tmp_path_factory) -> dict:
+    """The fixture's dataset side with the regenerated scene's images (the points come from hloc's files alone)."""
+    from lipmap.datasets.synthetic import generate_scene
+
+    full = tmp_path_factory.mktemp("full")
+    scene_dir = generate_scene(full, seed=0, preset="small")
+    data = tmp_path_factory.mktemp("hloc-data") / "7scenes"
+    shutil.copytree(HLOC_FIXTURE / "datasets" / "7scenes", data)
+    for pose in data.glob("room-s0/seq-*/frame-*.pose.txt"):
+        stem = pose.name[: -len(".pose.txt")]
+        for kind in ("color.png", "depth.png"):
+            shutil.copy(scene_dir / pose.parent.name / f"{stem}.{kind}", pose.parent / f"{stem}.{kind}")
+    return {"data": data, "outputs": HLOC_FIXTURE / "hloc_outputs" / "7scenes"}
+
+
+def test_eval_on_files_hloc_wrote(hloc_written, tmp_path):
+    from localization.hloc_io import read_results
+
+    data, outputs = hloc_written["data"], hloc_written["outputs"]
+    path = run_eval("synthetic", data, ["room-s0"], tmp_path / "out", CONF, hloc_dir=outputs)
+    res = json.loads((path.parent / "room-s0" / "results.json").read_text())
+    chosen = res["points"]["hloc"]
+    assert Path(chosen["sfm"]).name == "sfm_sift+NN-mutual"  # triangulated from the features, not sfm_sift
+    assert Path(chosen["features"]).name == "feats-sift.h5"
+    assert Path(chosen["matches"]).name == "feats-sift_matches-NN-mutual_room-s0_top10.h5"
+    assert Path(chosen["pairs"]) == data / "7scenes_densevlad_retrieval_top_10" / "room-s0_top10.txt"
+    # point-only from hloc's own matches is at least as accurate as hloc's localize_sfm (pycolmap's
+    # estimate_and_refine_absolute_pose) on them
+    scene = load_scene("synthetic", data, "room-s0")
+    hloc_poses = read_results(outputs / "room-s0" / "results_sparse.txt")
+    hloc_t = [100 * pose_errors(v.cam_from_world, hloc_poses[v.name])[0] for v in scene.query]
+    ours_t = [res["queries"][v.name]["point"]["t_cm"] for v in scene.query]
+    assert np.median(ours_t) <= 1.05 * np.median(hloc_t) + 0.01, (ours_t, hloc_t)
+    assert res["summary"]["point+line"]["n_failed"] == 0
+
+
+def test_hlocs_sfm_sift_is_refused_with_the_reason(hloc_written, tmp_path):
+    scene = load_scene("synthetic", hloc_written["data"], "room-s0")
+    from localization.pipeline import HlocPoints
+
+    with pytest.raises(InputError, match=r"sfm_sift: cannot read the COLMAP model.*hloc's sfm_sift"):
+        HlocPoints(HlocOutputs(hloc_written["outputs"], sfm="sfm_sift"), scene)
