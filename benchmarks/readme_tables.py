@@ -45,13 +45,20 @@ def _machine(m: dict) -> str:
     return f"{m.get('cpu', '?')}, {m.get('cores', '?')} cores{gpu}{env}"
 
 
+def _parse_markdown(table: str) -> tuple[list, list]:
+    """(header, rows) of a markdown table as a benchmark printed it."""
+    lines = [ln.strip() for ln in table.strip().splitlines() if ln.strip().startswith("|")]
+    cells = [[c.strip() for c in ln.strip("|").split("|")] for ln in lines]
+    return cells[0], [c for c in cells[1:] if not all(set(x) <= set("-: ") for x in c)]
+
+
 def render_block(names: list[str]) -> str:
     """The markdown of one generated block: the tables of ``names`` under one header, then provenance."""
     header, rows, notes = None, [], []
     for name in names:
         r = results.read(name)
         t, p = r["table"], r["provenance"]
-        head, body = t["header"], t["rows"]
+        head, body = _parse_markdown(t) if isinstance(t, str) else (t["header"], t["rows"])
         if name.startswith("localization-variants-"):  # a block may pool several runs: name each on its first row
             run = results.variants_run(r)
             head, body = ["run", *head], [[run if i == 0 else "", *row] for i, row in enumerate(body)]
