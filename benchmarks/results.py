@@ -133,8 +133,13 @@ _DEFAULT_RESULTS = RESULTS
 
 
 def dirty() -> bool:
-    """Whether the checkout has uncommitted changes to tracked files (figures from it reproduce from no commit)."""
-    return bool(_git("status", "--porcelain", "--untracked-files=no"))
+    """Whether the checkout has uncommitted changes to tracked files (figures from it reproduce from no commit);
+    the figures already written into ``benchmarks/results/`` and the documents generated from them do not count."""
+    return bool(_git("status", "--porcelain", "--untracked-files=no", "--", ".", *(f":!{p}" for p in _NOT_CODE)))
+
+
+# what benchmark runs write themselves: a series of runs from one commit stays clean
+_NOT_CODE = ("benchmarks/results", "README.md", "docs")
 
 
 def require_clean() -> None:
@@ -143,7 +148,7 @@ def require_clean() -> None:
     if RESULTS == _DEFAULT_RESULTS and os.environ.get(ALLOW_DIRTY_ENV) != "1" and dirty():
         raise SystemExit(f"benchmarks/results: the tree has uncommitted changes, so these figures would reproduce from no "
                          f"commit. Commit first (or run from a clean worktree), or set {ALLOW_DIRTY_ENV}=1 to write "
-                         f"them marked '(uncommitted changes)'.\n{_git('status', '--short', '--untracked-files=no')}")
+                         f"them marked '(uncommitted changes)'.\n{_git('status', '--short', '--untracked-files=no', '--', '.', *(f':!{p}' for p in _NOT_CODE))}")
 
 
 def write(name: str, data: dict, argv=None) -> Path:
