@@ -28,11 +28,12 @@ def wall_targets(n=4, z=2.0, valid=True):
     return out
 
 
-def noisy_wall_planes(K=12, seed=0):
+def noisy_wall_planes(K=12, seed=0, facing_camera=False):
+    """Planes near the wall z = 2, their normals +z (away from the cameras of :func:`wall_targets`), or towards them."""
     rng = np.random.default_rng(seed)
     c = np.stack([rng.uniform(-0.8, 0.8, K), rng.uniform(-0.6, 0.6, K), 2.0 + rng.normal(0, 0.08, K)], 1)
     n = np.array([0, 0, 1.0]) + rng.normal(0, 0.15, (K, 3))
-    return Planes.from_normals(c, n, np.full(K, 0.12))
+    return Planes.from_normals(c, -n if facing_camera else n, np.full(K, 0.12))
 
 
 def small_conf(**kw):
@@ -184,13 +185,16 @@ def test_fit_planes_redkitchen_query_depth(redkitchen_root, tmp_path):
 
 
 def test_paper_preset_runs():
-    """The reference settings (soft lambda start, splitting at 0.2) run and keep finite parameters."""
+    """The reference settings (soft lambda start, splitting at 0.2, back faces culled) run, train the planes that
+    face the cameras and keep finite parameters; planes that face away are never rendered."""
     conf = PlaneOptConfig.preset("paper", epochs=2, progress=False)
-    assert conf.lr_center == 1e-3 and conf.split and conf.lambda_min == 0
-    planes, hist = optimize_planes(wall_targets(2), noisy_wall_planes(), conf)
-    assert hist["lambda"][0] < 300
+    assert conf.lr_center == 1e-3 and conf.split and conf.lambda_min == 0 and conf.cull_back_faces
+    planes, hist = optimize_planes(wall_targets(2), noisy_wall_planes(facing_camera=True), conf)
+    assert hist["lambda"][0] < 300 and hist["skipped"] == [0, 0]
     for t in planes.tensors():
         assert torch.isfinite(t).all()
+    _, hist = optimize_planes(wall_targets(2), noisy_wall_planes(), conf)
+    assert hist["skipped"] == [2, 2]  # each round's 2 iterations: nothing rendered, no gradient
 
 
 def test_fine_iterations_train_the_last_steps_at_full_resolution(synthetic_root):

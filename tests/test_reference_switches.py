@@ -4,12 +4,18 @@ import numpy as np
 import pytest
 import torch
 
-from lipmap.mapping.assign import best_edges
-from lipmap.mapping.losses import line_loss_terms
+from dataclasses import replace
+
+from lipmap.mapping.assign import best_edges, first_hit_in_render, first_hit_torch, pixel_rays_world
+from lipmap.mapping.joint import line_supervision
+from lipmap.mapping.losses import assigned_edges, line_loss, line_loss_terms
 from lipmap.mapping.pipeline import get_conf
-from lipmap.planes.optimize import PlaneOptConfig, Schedule, ViewTarget, _apply_step, _EpochStats, plane_loss
-from lipmap.planes.render import RenderOutput
-from lipmap.scene import Camera
+from lipmap.mapping.supervision import LineSupervision
+from lipmap.planes.optimize import (PlaneOptConfig, Schedule, ViewTarget, _apply_step, _EpochStats, _make_optimizer,
+                                    _restructure, plane_loss, render_target)
+from lipmap.planes.primitives import Planes
+from lipmap.planes.render import RenderOutput, rasterize_planes
+from lipmap.scene import Camera, View
 from lipmap.testing import rect
 
 CAM = Camera(100, 80, (100.0, 100.0, 50.0, 40.0))
@@ -69,15 +75,206 @@ def test_endpoint_term_ignores_endpoints_outside_the_image():
     # an edge from x = 20 to x = 150 px (outside the 100-px image) on the row y = 40; detection 20..90
     edge = torch.tensor([[[-0.3, 0.0, 1.0], [1.0, 0.0, 1.0]]], dtype=torch.float64)  # u = 50 + 100 x
     det = torch.tensor([[20.0, 40.0, 90.0, 40.0]], dtype=torch.float64)
-    euc_all, _, _ = line_loss_terms(edge, det, torch.eye(4, dtype=torch.float64), CAM)
-    euc_in, _, _ = line_loss_terms(edge, det, torch.eye(4, dtype=torch.float64), CAM, euc_inside_only=True)
+    euc_all = line_loss_terms(edge, det, torch.eye(4, dtype=torch.float64), CAM)[0]
+    euc_in = line_loss_terms(edge, det, torch.eye(4, dtype=torch.float64), CAM, euc_inside_only=True)[0]
     assert float(euc_all[0]) == pytest.approx(60.0) and float(euc_in[0]) == pytest.approx(0.0)
+
+
+def _row_edges(*us):
+    """Corners (K, 4, 3) whose first edge (v1 -> v2) runs along the image row y = 40 at z = 1 between the columns
+    ``us`` = (u1, u2), (u3, u4), ...: x = (u - 50) / 100."""
+    c = np.zeros((len(us), 4, 3))
+    for k, (a, b) in enumerate(us):
+        c[k, 0], c[k, 1] = [(a - 50) / 100, 0, 1], [(b - 50) / 100, 0, 1]
+        c[k, 2], c[k, 3] = c[k, 1] + [0, 0.1, 0], c[k, 0] + [0, 0.1, 0]
+    return torch.tensor(c)
+
+
+def test_endpoint_term_is_the_mean_over_the_endpoints_inside_the_image():
+    """The reference's D_euc (``lines_edps_loss_2d``): the mean distance over the projected endpoints inside the
+    image, the endpoints paired on the unmasked squared distances. Edge A (u 20..70) sees detection 22..74 (2 and 4
+    px); edge B (u -20..50, its first end outside) sees 40..90: paired as they stand (60^2 + 40^2 < 110^2 + 10^2),
+    its inside end is 40 px from the detection's end. Mean over the 3 inside endpoints: 46 / 3 px; the edges lie on
+    the detections' lines, so D_ort is 0. Pairing on the inside ends alone would have given 10 px, and a mean over
+    the assignments 0.5 (6 + 10) / 2 = 4."""
+    corners = _row_edges((20, 70), (-20, 50))
+    det = np.array([[22.0, 40.0, 74.0, 40.0], [40.0, 40.0, 90.0, 40.0]])
+    T = np.eye(4)
+    euc, ort, valid, inside = line_loss_terms(assigned_edges(corners, [0, 1], [0, 0]), torch.tensor(det), torch.eye(4, dtype=torch.float64), CAM,
+                                              euc_inside_only=True)
+    assert euc.tolist() == pytest.approx([6.0, 40.0]) and inside.tolist() == [[1, 1], [0, 1]]
+    conf = get_conf("paper")
+    loss = line_loss(corners, [0, 1], [0, 0], det, [0, 1], T, CAM, endpoint_weight=conf.endpoint_weight,
+                     euc_inside_only=conf.euc_inside_only, robust_scale=conf.robust_scale)
+    assert float(loss) == pytest.approx(2 * 0.5 * 46 / 3)
+
+
+def test_normal_loss_on_a_partly_covered_pixel():
+    """The reference's normal loss (``normal_loss`` with ``valid_ray_mask``): unit normals, averaged over the pixels
+    that render. A pixel half covered by a plane that faces the camera as the target does (its composited normal is
+    alpha = 0.5 long) costs nothing, and a pixel no plane covers is not counted; as composited, over every pixel
+    with a target normal, the first costs 0.5 + 0.5 and the second 1 + 1."""
+    normal = torch.tensor([[[0.0, 0.0, -0.5], [0.0, 0.0, 0.0]]], requires_grad=True)
+    alpha = torch.tensor([[0.5, 0.0]])
+    r = RenderOutput(torch.zeros(1, 2, requires_grad=True), normal, alpha, torch.tensor([[[0], [-1]]]))
+    tgt = ViewTarget(None, CAM, torch.eye(4), torch.zeros(1, 2), torch.tensor([[[0.0, 0, -1], [0, 0, -1]]]),
+                     torch.zeros(1, 2, dtype=torch.bool), torch.ones(1, 2, dtype=torch.bool))
+    ref = plane_loss(r, tgt, PlaneOptConfig.preset("paper"))
+    assert ref[1]["normal"] == pytest.approx(0.0, abs=1e-7)
+    assert plane_loss(r, tgt, PlaneOptConfig.preset("fast"))[1]["normal"] == pytest.approx((1.0 + 2.0) / 2)
+
+
+def test_normal_loss_in_the_world_frame():
+    # camera turned 45 deg about its axis: rendered (1, 0, 0), target (0, 1, 0) in the camera frame; L1 is 2 there
+    # and sqrt(2) between the same normals in the world frame (the reference's ``normal_global``); 1 - cos is 1
+    c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
+    T = torch.eye(4)
+    T[:3, :3] = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    r = RenderOutput(torch.zeros(1, 1), torch.tensor([[[1.0, 0, 0]]], requires_grad=True), torch.ones(1, 1),
+                     torch.zeros(1, 1, 1, dtype=torch.long))
+    tgt = ViewTarget(None, CAM, T, torch.zeros(1, 1), torch.tensor([[[0.0, 1, 0]]]), torch.zeros(1, 1, dtype=torch.bool),
+                     torch.ones(1, 1, dtype=torch.bool))
+    assert plane_loss(r, tgt, PlaneOptConfig.preset("paper"))[1]["normal"] == pytest.approx(np.sqrt(2) + 1, rel=1e-6)
+    assert plane_loss(r, tgt, PlaneOptConfig.preset("fast"))[1]["normal"] == pytest.approx(3.0, rel=1e-6)
+
+
+def _adam_steps(conf, n):
+    """|centre step| of each of ``n`` steps of the plane optimizer of ``conf`` on one plane whose centre gradient
+    changes sign and size at random (the radii and rotation get none)."""
+    params = [torch.zeros(1, 3, requires_grad=True), torch.tensor([[1.0, 0, 0, 0]], requires_grad=True),
+              torch.full((1, 4), 0.1, requires_grad=True)]
+    opt = _make_optimizer(params, conf)
+    g = torch.tensor(np.random.default_rng(0).uniform(0.1, 10, (n, 3)) * np.random.default_rng(1).choice([-1, 1], (n, 3)),
+                     dtype=torch.float32)
+    steps = []
+    for i in range(n):
+        before = params[0].detach().clone()
+        _apply_step(opt, params, (params[0] * g[i]).sum() + 0 * params[1].sum() + 0 * params[2].sum(),
+                    conf.reset_moments_on_recenter)
+        steps.append((params[0].detach() - before).abs()[0].numpy())
+    return opt, np.array(steps)
+
+
+def test_paper_adam_moves_each_centre_by_lr_times_the_sign_of_its_gradient():
+    """The reference's plane optimizer (``build_plane_optimizer_and_LRscheduler``, ``regularize_plane_shape``): Adam
+    with betas (0.9, 0.99) and eps 1e-15 whose centre and radii moments are zeroed after every step, the step count
+    kept. Step t is then lr * (1 - b1) / (1 - b1^t) * sqrt(1 - b2^t) / sqrt(1 - b2), whatever the gradient: lr from a
+    few hundred steps on. With torch's b2 = 0.999 the same reset gives 2.1 lr at step 600 (3.2 lr at 6,000)."""
+    conf = PlaneOptConfig.preset("paper")
+    opt, steps = _adam_steps(conf, 600)
+    assert opt.defaults["betas"] == (0.9, 0.99) and opt.defaults["eps"] == 1e-15
+    t = np.arange(1, 601)[:, None]
+    want = conf.lr_center * 0.1 / (1 - 0.9 ** t) * np.sqrt(1 - 0.99 ** t) / 0.1
+    np.testing.assert_allclose(steps, np.broadcast_to(want, steps.shape), rtol=1e-3)
+    assert steps[-1] == pytest.approx([conf.lr_center] * 3, rel=2e-3)  # sqrt(1 - 0.99^600) = 0.9988
+    assert steps[0] == pytest.approx([conf.lr_center] * 3, rel=1e-3)
+
+
+def test_fast_adam_keeps_its_moments():
+    # fast: torch's Adam, moments kept (docs/mapping.md): after a run of gradients of one sign, a sign change moves
+    # the centre less than lr, not lr the other way
+    conf = PlaneOptConfig.preset("fast-lines")
+    opt, _ = _adam_steps(conf, 3)
+    assert opt.defaults["betas"] == tuple(conf.adam_betas) and opt.defaults["eps"] == conf.adam_eps
+    assert not conf.reset_moments_on_recenter and float(opt.state[opt.param_groups[0]["params"][0]]["exp_avg"].abs().sum()) > 0
+
+
+def _occluder_scene():
+    """An occluder (plane 0, 1 m ahead, its right edge at x = 0: column 50) in front of a wall (plane 1, 1.5 m), and
+    a detected vertical line along column 51.5: its region pixels' rays pass 0.5-2.5 cm right of the occluder."""
+    planes = Planes.from_normals([[-0.25, 0.0, 1.0], [0.0, 0.0, 1.5]], np.tile([0, 0, -1.0], (2, 1)),
+                                 np.array([[0.25, 0.25, 0.3, 0.3], [0.5, 0.5, 0.5, 0.5]]))
+    line = np.array([[51.5, 20.0, 51.5, 60.0]])
+    return planes, line
+
+
+def test_line_term_first_hit_is_the_rectangle_not_its_splat():
+    """Paper Sec. 3.2 and the reference (``check_intersections_in_plane``): a region pixel's plane is the first
+    rectangle its ray meets. At the reference's first splat sharpness (lambda 36.8) the occluder's fall-off reaches
+    27 cm past its edge: the render's nearest splat along these pixels is the occluder, the rectangle they meet is
+    the wall."""
+    planes, line = _occluder_scene()
+    v = View("v", CAM, np.eye(4), color_path=None)
+    tgt = ViewTarget(v, CAM, torch.eye(4), torch.zeros(80, 100), torch.zeros(80, 100, 3),
+                     torch.zeros(80, 100, dtype=torch.bool), torch.zeros(80, 100, dtype=torch.bool))
+    out = rasterize_planes(planes.center, planes.quat, planes.radii, torch.eye(4), CAM.params, 100, 80, 36.8)
+    assert int(out.hits[40, 51, 0]) == 0 and int(out.hits[40, 51, 1]) == 1  # the occluder's splat, then the wall
+    got = {}
+    for name, kw in (("soft", dict(pixels_per_line=0, hard_first_hit=False)), ("hard", dict(pixels_per_line=0, hard_first_hit=True)),
+                     ("sampled", dict(pixels_per_line=1))):
+        sup = LineSupervision({"v": line}, weight=1.0, max_assign_frac=0.0, **kw)
+        sup(v, planes, 0, out, tgt)
+        got[name] = set(sup.last["planes"].tolist())
+    assert got == {"soft": {0}, "hard": {1}, "sampled": {1}}
+    paper = line_supervision({"v": line}, get_conf("paper"))
+    paper(v, planes, 0, out, tgt)
+    assert set(paper.last["planes"].tolist()) == {1}
+
+
+def test_first_hit_in_render_agrees_with_casting_every_ray():
+    """:func:`first_hit_in_render` (the render's lists, rays cast only where a list may have been cut) against
+    :func:`first_hit_torch` (every ray against every plane), on random planes, with lists long enough and cut at 1."""
+    rng = np.random.default_rng(0)
+    K = 40
+    normals = rng.normal(size=(K, 3)) * [0.3, 0.3, 1.0]
+    normals[:, 2] = -np.abs(normals[:, 2])
+    planes = Planes.from_normals(rng.uniform([-0.6, -0.5, 1.0], [0.6, 0.5, 2.5], (K, 3)), normals,
+                                 rng.uniform(0.05, 0.3, K))
+    corners = planes.corners()
+    jj, ii = np.meshgrid(np.arange(100), np.arange(80))
+    pix = np.stack([jj.ravel(), ii.ravel()], 1)
+    o, d = (torch.as_tensor(a, dtype=torch.float32) for a in pixel_rays_world(pix, np.eye(4), CAM))
+    want = first_hit_torch(corners, o, d)[0]
+    assert (want >= 0).float().mean() > 0.5 and len(set(want.tolist())) > 20
+    for max_hits in (5, 1):
+        out = rasterize_planes(planes.center, planes.quat, planes.radii, torch.eye(4), CAM.params, 100, 80, 36.8, max_hits)
+        cand = out.hits.reshape(-1, max_hits)
+        complete = (cand[:, -1] < 0) & (out.alpha.reshape(-1) < 1 - 1e-4)
+        got = first_hit_in_render(corners, cand, o, d, complete)
+        assert torch.equal(got, want), (max_hits, int((got != want).sum()))
+
+
+def test_culled_planes_are_not_rendered():
+    """The reference's renderer skips planes whose normal faces away from the camera and planes whose centre is
+    nearer than 0.2 m; hits index the whole plane set."""
+    planes = Planes.from_normals([[0.0, 0, 2.0], [0.1, 0, 1.5], [0.0, 0.1, 0.15]], [[0, 0, -1.0], [0, 0, 1.0], [0, 0, -1.0]],
+                                 [0.2, 0.2, 0.05])
+    tgt = ViewTarget(None, CAM, torch.eye(4), torch.zeros(80, 100), torch.zeros(80, 100, 3),
+                     torch.zeros(80, 100, dtype=torch.bool), torch.zeros(80, 100, dtype=torch.bool))
+    params = planes.tensors()
+    seen = {}
+    for name, conf in (("fast", PlaneOptConfig.preset("fast")), ("paper", PlaneOptConfig.preset("paper"))):
+        out = render_target(params, tgt, 1500.0, replace(conf, max_hits=5))
+        seen[name] = out.visible_planes(3).tolist()
+    assert seen == {"fast": [True, True, True], "paper": [True, False, False]}
+
+
+def test_paper_splits_after_one_pass_over_the_views():
+    # the reference's trainer splits when iter > split_start_ite = the number of views: from the second round on
+    planes = Planes.from_normals([[0.0, 0, 2.0]], [[0, 0, -1.0]], [0.2])
+    params = [t.clone().requires_grad_(True) for t in planes.tensors()]
+    conf = PlaneOptConfig.preset("paper")
+    sched = Schedule.of(conf, 10)
+    splits = []
+    for n_round in (0, 1):
+        stats = _EpochStats.zeros(1, "cpu")
+        stats.add_step(torch.tensor(1.0), None, torch.ones(1, 4), torch.tensor([True]), conf.split_grad_reduce)
+        new, _, imap = _restructure(params, _make_optimizer(params, conf), stats, 10 * (n_round + 1), sched, {},
+                                    n_round=n_round)
+        splits.append(imap.n_split)
+    assert splits == [0, 1]
 
 
 def test_paper_preset_follows_the_reference_code():
     conf = get_conf("paper")
     planes = PlaneOptConfig.preset(conf.planes)
     assert (planes.split_grad_reduce, planes.depth_loss_on_rendered, planes.reset_moments_on_recenter) == ("max", True, True)
+    assert (planes.adam_betas, planes.adam_eps) == ((0.9, 0.99), 1e-15)
+    assert (planes.normal_loss_normalized, planes.normal_loss_on_rendered, planes.normal_frame) == (True, True, "world")
+    # the reference renderer: 30 contributors per pixel, back faces and planes whose centre is nearer than 0.2 m culled
+    assert (planes.max_hits, planes.cull_back_faces, planes.min_center_depth, planes.split_after_rounds) == (30, True, 0.2, 1)
+    # one sampled pixel per line and iteration, its first rectangle; every view; no minimum line length
+    assert (conf.pixels_per_line, conf.hard_first_hit, conf.keyframes.enabled, conf.extract.min_length) == (1, True, False, 0)
     assert (planes.lr_center, planes.lr_quat, planes.lr_radii) == (1e-3, 1e-3, 1e-3)
     # max_total_iters 6,000 whatever the number of views (60 epochs of the reference's 100 views)
     assert (Schedule.of(planes, 100).max_iters, Schedule.of(planes, 30).max_iters, Schedule.of(planes, 7000).max_iters) == (6000,) * 3

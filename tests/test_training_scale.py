@@ -7,10 +7,12 @@ at half resolution, lines right of the image centre got no region at all and the
 hit at twice their coordinates. Every synthetic test then trained at scale 1, where that cannot show.
 """
 import numpy as np
+import pytest
 
 from lipmap import geometry as geo
 from lipmap.mapping.assign import PlaneRaycaster, line_regions, plane_depth
 from lipmap.mapping.extract import ExtractConfig, extract_observations, visible_mask
+from lipmap.mapping.pipeline import get_conf
 from lipmap.mapping.supervision import LineSupervision
 from lipmap.planes.init import DepthFrame
 from lipmap.planes.optimize import PlaneOptConfig, optimize_planes, prepare_targets
@@ -132,3 +134,64 @@ def test_the_depth_gate_of_the_line_term_skips_planes_off_the_sensor_depth():
         assert n_on == n_on_off >= 4, (ppl, n_on, n_on_off)  # the gate keeps what lies on the surface
         assert n_fl_off >= 4 and loss_fl_off > 0, (ppl, n_fl_off)  # without it the floating plane is pulled as the real one
         assert n_fl == 0, (ppl, n_fl)
+
+
+def test_training_camera_is_the_targets_and_the_line_terms():
+    """One training camera per view: the line term's regions sit on the target's grid, its y scaled by the height's
+    factor. At 1752x1168 (ScanNet++ DSLR) the automatic downscale of 5 gives 350x234, while a width ratio applied to
+    the height rounds to 233 (and scaled the lines' y by the x factor: up to 0.67 training pixels off)."""
+    from lipmap.planes.optimize import training_camera
+    from lipmap.scene import Camera
+
+    full = Camera(1752, 1168, (1400.0, 1400.0, 876.0, 584.0))
+    cam = training_camera(full, PlaneOptConfig.preset("fast"))
+    assert (cam.width, cam.height) == (350, 234) and cam.cy == 117.0
+    v = View("a.png", full, np.eye(4), color_path=None)
+    line = np.array([[100.0, 1162.5, 1700.0, 1162.5]])  # y 1162.5 -> 232.90 training pixels (x factor: 232.24)
+    pix, _ = LineSupervision({v.name: line}).regions(v, cam)
+    assert set(pix[:, 1]) == {232, 233}  # the rows whose centres (232.5, 233.5) lie within 1 px of 232.90
+
+
+def _resized_views(scene, width, height, out, n=3):
+    """The first ``n`` mapping views of ``scene`` with their colour, depth and intrinsics resized to width x height."""
+    import cv2
+
+    from lipmap.imageio import read_depth, write_depth
+    from lipmap.planes.init import resize_nearest
+    from lipmap.scene import Camera
+
+    views = []
+    for v in scene.mapping[:n]:
+        c = v.camera
+        sx, sy = width / c.width, height / c.height
+        cam = Camera(width, height, (c.fx * sx, c.fy * sy, c.cx * sx, c.cy * sy))
+        color, depth = out / v.name.replace("/", "_"), out / v.name.replace("/", "_").replace("color", "depth")
+        cv2.imwrite(str(color), cv2.resize(cv2.imread(str(v.color_path)), (width, height), interpolation=cv2.INTER_AREA))
+        write_depth(depth, resize_nearest(read_depth(v.depth_path, scale=v.depth_scale), width, height))
+        views.append(View(v.name, cam, v.cam_from_world, color_path=color, depth_path=depth))
+    return views
+
+
+@pytest.mark.parametrize("size", [(1752, 1168), (1296, 968), (803, 601)])
+def test_mapping_runs_at_any_image_size(synthetic_root, tmp_path, monkeypatch, size):
+    """One iteration of `quick` mapping (depth gate on) on views resized to ScanNet++ DSLR's 1752x1168, 1296x968 and
+    an odd 803x601. At 1752x1168 and 803x601 the line term once rebuilt a training camera one row short of the
+    targets' and stopped at iteration 0 (``ValueError: the sensor depth is (234, 350), the training grid (233,
+    350)``)."""
+    from dataclasses import replace
+
+    from lipmap.datasets import load_scene
+    from lipmap.linemap import LineMap
+    from lipmap.mapping import pipeline
+    from lipmap.mapping.pipeline import map_scene
+
+    monkeypatch.setattr(pipeline, "_render", lambda *a: None)  # the pictures beside the map: seconds at these sizes
+    scene = load_scene("synthetic", synthetic_root, "room-s3")
+    views = _resized_views(scene, *size, tmp_path, n=2)
+    scene = replace(scene, mapping=views, query=[])
+    conf = {"preset": "quick", "on_plane_lines": False,
+            "planes": {"preset": "fast", "epochs": 0, "iterations": 1, "progress": False,
+                       "init": {"n_planes": 300, "voxel_size": 0.05, "depth_downscale": 0}}}
+    assert get_conf(conf).line_depth_gate > 0
+    lm = LineMap.load(map_scene(scene, tmp_path / "map", conf))
+    assert lm.metadata["n_planes"] > 0

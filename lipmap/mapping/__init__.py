@@ -7,7 +7,8 @@ Planes (Sec. 3.1 representation, Sec. 3.3 plane loss and optimization; appendix 
                               composite_hits; pure-torch twin: lipmap.planes._torch_impl)
     plane loss                lipmap.planes.optimize.plane_loss (2 * depth L1 + 5 * normal L1 and 1 - cos)
     optimization loop         lipmap.planes.optimize.optimize_planes (one view per iteration, Adam,
-                              re-centring; prune and split once per epoch: prune_and_split)
+                              re-centring; prune and split once per epoch, or every
+                              restructure_every iterations if longer: prune_and_split)
     the plane step            lipmap.planes.optimize.fit_planes (init + optimize -> planes.h5)
 
 Lines (Sec. 3.2 assignment, Sec. 3.3 line loss, Sec. 3.4 finalization; appendix "Global Line Merging"):

@@ -76,8 +76,7 @@ def pixel_rays_world(pixels: np.ndarray, cam_from_world: np.ndarray, camera):
     R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
     d = d_cam @ R
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    o = np.broadcast_to(-R.T @ t, d.shape)
-    return np.ascontiguousarray(o), d
+    return np.repeat((-R.T @ t)[None], len(d), 0), d
 
 
 class PlaneRaycaster:
@@ -227,6 +226,31 @@ def assign_lines(raycaster: PlaneRaycaster, corners, lines2d, cam_from_world, ca
     return {"pixel": pixels, "line": line_idx, "plane": plane, "edge": edge, "angle": ang, "dist": dmax, "depth": dist_ray}
 
 
+def _rect_frames(corners):
+    """Per rectangle (torch, no grad): corner v3, unit axes X (v4 -> v1) and Y (v2 -> v1), their lengths, the normal."""
+    import torch
+
+    v1, v2, v3, v4 = corners.detach().unbind(1)
+    ex, ey = v1 - v4, v1 - v2  # full-length x and y edge vectors
+    lx, ly = ex.norm(dim=-1).clamp_min(1e-12), ey.norm(dim=-1).clamp_min(1e-12)
+    X, Y = ex / lx[:, None], ey / ly[:, None]
+    return v3, X, Y, lx, ly, torch.linalg.cross(X, Y)
+
+
+def _ray_rect_t(v3, X, Y, lx, ly, n, o, d):
+    """Ray parameters t (any matching leading shape) of rays o + t d on the rectangles (hard borders): inf where the
+    ray misses the rectangle or meets its plane behind the origin."""
+    import torch
+
+    denom = (d * n).sum(-1)
+    safe = torch.where(denom.abs() > 1e-12, denom, torch.full_like(denom, 1e-12))
+    t = ((v3 - o) * n).sum(-1) / safe
+    rel = o + t[..., None] * d - v3
+    u, w = (rel * X).sum(-1), (rel * Y).sum(-1)
+    ok = (t > 1e-6) & (denom.abs() > 1e-12) & (u >= 0) & (u <= lx) & (w >= 0) & (w <= ly)
+    return torch.where(ok, t, torch.full_like(t, float("inf")))
+
+
 def first_hit_torch(corners, origins, dirs, chunk: int = 2048):
     """First-hit ray casting against rectangles, brute force in torch (no grad; CPU or CUDA).
 
@@ -242,30 +266,46 @@ def first_hit_torch(corners, origins, dirs, chunk: int = 2048):
     import torch
 
     with torch.no_grad():
-        corners = corners.detach()
-        v1, v2, v3, v4 = corners.unbind(1)
-        ex, ey = v1 - v4, v1 - v2  # full-length x and y edge vectors
-        lx, ly = ex.norm(dim=-1).clamp_min(1e-12), ey.norm(dim=-1).clamp_min(1e-12)
-        X, Y = ex / lx[:, None], ey / ly[:, None]
-        n = torch.linalg.cross(X, Y)
+        frames = [f[None] for f in _rect_frames(corners)]  # (1, K, ...)
         P = len(origins)
         best_t = torch.full((P,), float("inf"), dtype=corners.dtype, device=corners.device)
         best_k = torch.full((P,), -1, dtype=torch.long, device=corners.device)
         for s in range(0, P, chunk):
-            o, d = origins[s : s + chunk], dirs[s : s + chunk]
-            denom = d @ n.T  # (p, K)
-            num = (v3 * n).sum(-1)[None] - o @ n.T
-            t = num / torch.where(denom.abs() > 1e-12, denom, torch.full_like(denom, 1e-12))
-            hit = o[:, None] + t[..., None] * d[:, None]  # (p, K, 3)
-            rel = hit - v3[None]
-            u = (rel * X[None]).sum(-1)
-            w = (rel * Y[None]).sum(-1)
-            ok = (t > 1e-6) & (denom.abs() > 1e-12) & (u >= 0) & (u <= lx[None]) & (w >= 0) & (w <= ly[None])
-            t = torch.where(ok, t, torch.full_like(t, float("inf")))
+            t = _ray_rect_t(*frames, origins[s : s + chunk, None], dirs[s : s + chunk, None])  # (p, K)
             tmin, kmin = t.min(dim=1)
             best_t[s : s + chunk] = tmin
             best_k[s : s + chunk] = torch.where(torch.isfinite(tmin), kmin, torch.full_like(kmin, -1))
         return best_k, best_t
+
+
+def first_hit_in_render(corners, candidates, origins, dirs, complete):
+    """The first rectangle (hard borders) each ray meets, among the planes a render composited along it.
+
+    A render lists, nearest first, the planes whose splat weight along a pixel's ray exceeds its threshold; inside
+    its rectangle the weight is 1, so the nearest rectangle the ray meets is in the list whenever the list was not
+    cut (by its length, or by the transmittance). Rays whose list may have been cut and holds no rectangle the ray
+    meets are cast against every plane (:func:`first_hit_torch`).
+
+    Args:
+        corners: :math:`(K, 4, 3)` tensor; candidates: :math:`(P, M)` long, the render's hits (-1 padded);
+        origins, dirs: :math:`(P, 3)` world rays (dirs unit); complete: :math:`(P,)` bool, the lists not cut.
+
+    Returns:
+        plane index :math:`(P,)` long (-1 miss).
+    """
+    import torch
+
+    with torch.no_grad():
+        frames = _rect_frames(corners)
+        k = candidates.clamp(min=0)
+        t = _ray_rect_t(*(f[k] for f in frames), origins[:, None], dirs[:, None])  # (P, M)
+        t = torch.where(candidates >= 0, t, torch.full_like(t, float("inf")))
+        tmin, j = t.min(dim=1)
+        first = torch.where(torch.isfinite(tmin), candidates.gather(1, j[:, None])[:, 0], torch.full_like(j, -1))
+        redo = ~torch.isfinite(tmin) & ~complete
+        if bool(redo.any()):
+            first[redo] = first_hit_torch(corners, origins[redo], dirs[redo])[0]
+        return first
 
 
 def visible_lines(lines3d: np.ndarray, cam_from_world: np.ndarray, camera, caster: "PlaneRaycaster | None" = None,

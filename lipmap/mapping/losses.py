@@ -24,26 +24,31 @@ def line_loss_terms(edges3d: torch.Tensor, det: torch.Tensor, cam_from_world: to
 
     Args:
         edges3d: :math:`(P, 2, 3)` world edges; det: :math:`(P, 4)` detected segments (px).
-        euc_inside_only: D_euc counts only the projected endpoints inside the image (reference code): an edge
-            that leaves the image cannot be seen to end where the detection ends.
+        euc_inside_only: D_euc as the reference codes it: only the projected endpoints inside the image count (an
+            edge that leaves the image cannot be seen to end where the detection ends), and the endpoints are paired
+            on the sum of the squared distances of both, inside or not; else paired on the smaller D_euc.
 
     Returns:
-        **euc** :math:`(P,)` = min over endpoint orderings of the summed endpoint distances (paper D_euc),
-        **ort** :math:`(P,)` = summed distances of the projected endpoints to the detected line (D_ort),
-        **valid** :math:`(P,)` (edge in front of the camera).
+        **euc** :math:`(P,)` = the summed distances of the paired endpoints (paper D_euc; those inside the image with
+        ``euc_inside_only``), **ort** :math:`(P,)` = summed distances of the projected endpoints to the detected line
+        (D_ort), **valid** :math:`(P,)` (edge in front of the camera), **inside** :math:`(P, 2)` (the weight of each
+        endpoint in ``euc``: 1, or with ``euc_inside_only`` whether it projects inside the image).
     """
     proj, valid = geo.project_segments(edges3d, cam_from_world, camera)
     d = det.reshape(-1, 2, 2)
     proj = torch.where(valid[:, None, None], proj, d)  # invalid -> zero loss, masked below anyway
     w = torch.ones(proj.shape[:2], dtype=proj.dtype, device=proj.device)
+    dist_direct = (proj - d).norm(dim=-1)  # (P, 2): endpoint i to detection endpoint i
+    dist_swapped = (proj - d.flip(1)).norm(dim=-1)
     if euc_inside_only:
         x, y = proj[..., 0].detach(), proj[..., 1].detach()
         w = ((x >= 0) & (x <= camera.width) & (y >= 0) & (y <= camera.height)).to(proj.dtype)
-    direct = w[:, 0] * (proj[:, 0] - d[:, 0]).norm(dim=-1) + w[:, 1] * (proj[:, 1] - d[:, 1]).norm(dim=-1)
-    swapped = w[:, 0] * (proj[:, 0] - d[:, 1]).norm(dim=-1) + w[:, 1] * (proj[:, 1] - d[:, 0]).norm(dim=-1)
-    euc = torch.minimum(direct, swapped)
+        swap = (dist_swapped.detach() ** 2).sum(-1) < (dist_direct.detach() ** 2).sum(-1)
+        euc = torch.where(swap, (w * dist_swapped).sum(-1), (w * dist_direct).sum(-1))
+    else:
+        euc = torch.minimum((w * dist_direct).sum(-1), (w * dist_swapped).sum(-1))
     ort = geo.perpendicular_distance(proj, d, reduce=None).sum(-1)
-    return euc, ort, valid
+    return euc, ort, valid, w
 
 
 def group_loss(edges3d: torch.Tensor, line_idx: torch.Tensor) -> torch.Tensor:
@@ -81,6 +86,11 @@ def line_loss(corners, plane_idx, edge_idx, det, line_idx, cam_from_world, camer
     """Mean over assignments of ``endpoint_weight`` * D_euc + max endpoint-to-line distance (0.5: the
     reference code's form), plus the optional group loss (metres, weighted by ``group_weight``).
 
+    With ``euc_inside_only`` the D_euc part is the reference's: ``2 * endpoint_weight`` x the mean distance over the
+    endpoints that project inside the image (the reference averages over those, so an edge leaving the image does
+    not dilute it), added to the mean over assignments of the max endpoint-to-line distance (with ``robust_scale`` > 0,
+    the per-assignment form below with the inside endpoints' D_euc).
+
     Detected segments are usually shorter than the plane edge they see (fragments, occlusion, the
     image border), so D_euc pulls every assigned edge's ends towards the fragment's ends and shrinks
     the plane; ``endpoint_weight=0`` keeps only the orthogonal term, which every fragment agrees on.
@@ -94,14 +104,21 @@ def line_loss(corners, plane_idx, edge_idx, det, line_idx, cam_from_world, camer
     edges = assigned_edges(corners, plane_idx, edge_idx)
     T = torch.as_tensor(cam_from_world, dtype=corners.dtype, device=corners.device)
     det = torch.as_tensor(det, dtype=corners.dtype, device=corners.device)
-    euc, _, valid = line_loss_terms(edges, det, T, camera, euc_inside_only)
+    euc, _, valid, inside = line_loss_terms(edges, det, T, camera, euc_inside_only)
     proj, _ = geo.project_segments(edges, T, camera)
     proj = torch.where(valid[:, None, None], proj, det.reshape(-1, 2, 2))
     ort_max = geo.perpendicular_distance(proj, det.reshape(-1, 2, 2), reduce="max")
-    per = endpoint_weight * euc + ort_max
-    if robust_scale > 0:
-        per = robust_px(per, robust_scale)
-    loss = per[valid].mean() if bool(valid.any()) else corners.sum() * 0
+    if not bool(valid.any()):
+        loss = corners.sum() * 0
+    elif euc_inside_only and robust_scale <= 0:
+        n_inside = inside[valid].sum()
+        euc_mean = euc[valid].sum() / n_inside.clamp(min=1) * 2  # per assignment, as endpoint_weight expects
+        loss = endpoint_weight * euc_mean + ort_max[valid].mean()
+    else:
+        per = endpoint_weight * euc + ort_max
+        if robust_scale > 0:
+            per = robust_px(per, robust_scale)
+        loss = per[valid].mean()
     if use_group:
         loss = loss + group_weight * group_loss(edges, line_idx)
     return loss

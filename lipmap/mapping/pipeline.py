@@ -44,7 +44,10 @@ class MappingConfig:
     endpoint_weight: float = 0.0  # D_euc weight (reference 0.5): it drags edges to the ends of short fragments
     robust_scale: float = 2.0  # px (full resolution), 0 = paper: an edge far from its line is usually another surface's
     max_assign_frac: float = 0.1  # skip assignments whose edge is > this x image size away (0: reference, none)
-    euc_inside_only: bool = False  # D_euc only over endpoints inside the image (reference; moot without D_euc)
+    euc_inside_only: bool = False  # D_euc averaged over the endpoints inside the image (reference; moot without D_euc)
+    # each region pixel's plane is the first rectangle its ray meets (paper, reference); off: the render's nearest
+    # splat, whose fall-off reaches past the rectangle's edge onto the surface behind
+    hard_first_hit: bool = True
     # m: the line term pulls a plane only where it lies this close to the sensor depth (0: the paper); without it
     # the term holds planes floating in front of the surface, whose edges fit lines in a few views
     line_depth_gate: float = 0.1
@@ -73,13 +76,15 @@ confs = {
     "fast": MappingConfig(),
     # tests, notebooks and demos on small scenes: 8 epochs of the plain "fast" plane preset
     "quick": MappingConfig(preset="quick", planes="fast", refine=RefineConfig(enabled=False)),
-    # the paper and its reference code
-    # the reference code where the paper's text is silent or differs: the line loss as coded (0.5 * D_euc +
-    # max D_ort, group loss off) rather than the text's sum with the group loss; extraction on the mean of
-    # the endpoint distances; no assignment distance filter
-    "paper": MappingConfig(preset="paper", planes="paper", line_weight=0.1, endpoint_weight=0.5, robust_scale=0.0,
-                           max_assign_frac=0.0, euc_inside_only=True, on_plane_lines=False, line_depth_gate=0.0,
-                           extract=ExtractConfig(dist_reduce="mean"), refine=RefineConfig(enabled=False)),
+    # the paper and its reference code (docs/mapping.md, "Where paper follows the reference code"); where the paper's
+    # text is silent or differs, the reference: the line loss as coded (0.5 * D_euc + max D_ort, group loss off,
+    # D_euc over the endpoints inside the image), one sampled pixel per line and iteration, hard first hits,
+    # extraction on the mean of the endpoint distances, every view, no assignment filter and no minimum line length
+    "paper": MappingConfig(preset="paper", planes="paper", line_weight=0.1, pixels_per_line=1, endpoint_weight=0.5,
+                           robust_scale=0.0, max_assign_frac=0.0, euc_inside_only=True, hard_first_hit=True,
+                           on_plane_lines=False, line_depth_gate=0.0,
+                           extract=ExtractConfig(dist_reduce="mean", min_length=0.0), refine=RefineConfig(enabled=False),
+                           keyframes=KeyframeConfig(min_translation=0.0, min_rotation_deg=0.0, max_frame_gap=0)),
 }
 
 METHODS = ("lipmap", "lift")

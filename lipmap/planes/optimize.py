@@ -29,7 +29,7 @@ from ..normals import normals_from_depth
 from ..presets import resolve
 from .init import LazyDepthFrames, PlaneInitConfig, init_planes, resize_nearest, working_downscale
 from .io import export_planes_ply, save_planes
-from .primitives import MAX_HITS, Planes
+from .primitives import MAX_HITS, Planes, quat_to_rotmat
 from .render import TILE_SIZE, RenderOutput, lambda_schedule, rasterize_planes
 
 
@@ -80,7 +80,21 @@ class PlaneOptConfig:
     split_into_four: bool = True  # both axes over the threshold -> 4 children, else 2
     split_grad_reduce: str = "mean"  # |grad| of an axis from its two radii: "mean", or "max" (reference code)
     depth_loss_on_rendered: bool = False  # depth L1 only where the render has alpha > 1e-5 (reference code)
-    reset_moments_on_recenter: bool = False  # zero Adam's moments of centre and radii after re-centring (reference)
+    # the normal loss as the reference codes it: both normals unit length (the composited one is alpha long) and
+    # the mean over the pixels that render (alpha > 1e-5), not every pixel with a target normal
+    normal_loss_normalized: bool = False
+    normal_loss_on_rendered: bool = False
+    normal_frame: str = "camera"  # "world" (reference): the L1 part of the normal loss is not rotation-invariant
+    adam_betas: tuple = (0.9, 0.999)  # torch's default; reference (0.9, 0.99)
+    adam_eps: float = 1e-8  # torch's default; reference 1e-15
+    # zero Adam's moments of centre and radii after every step, keeping the step count: the reference replaces both
+    # tensors when it re-centres them after each step; with its betas each moves by ~lr x the sign of its gradient
+    reset_moments_on_recenter: bool = False
+    split_after_rounds: int = 0  # prune/split rounds that only prune before splitting may begin (reference: 1)
+    # planes each view renders: the reference's renderer skips planes whose normal faces away from the camera and
+    # planes whose centre is nearer than 0.2 m (its near culling); ours renders both sides and culls nothing
+    cull_back_faces: bool = False
+    min_center_depth: float = 0.0  # m
     max_planes: int = 20000  # splitting never grows the set beyond this
     seed: int = 0
     device: str = "auto"  # "auto" = CUDA when available
@@ -136,11 +150,17 @@ def _fast_lines() -> PlaneOptConfig:
 
 
 def _paper() -> PlaneOptConfig:
-    # Reference-code settings: full resolution, 6,000 iterations whatever the views, lr 1e-3, 1 cm voxels,
-    # its depth mask, moment reset and split criterion. Plane loss 2 * depth + 5 * normal as the reference codes it (the paper's text
-    # writes the weights as lambda_d and lambda_n without values).
-    return PlaneOptConfig(name="paper", epochs=0, iterations=6000, downscale=1, split_grad_reduce="max", depth_loss_on_rendered=True,
-                          reset_moments_on_recenter=True, init=PlaneInitConfig(voxel_size=0.01, depth_downscale=1))
+    # The reference code (docs/mapping.md, "Where paper follows the reference code"): full resolution, 6,000 iterations
+    # whatever the views, lr 1e-3 with its Adam (betas 0.9 / 0.99, eps 1e-15, centre and radii moments zeroed after
+    # each step), 1 cm voxels, its depth and normal losses (unit normals in the world frame, over the rendered
+    # pixels), its split criterion from the second round, and its renderer's 30 contributors per pixel, back-face
+    # and near-centre culling. Plane loss 2 * depth + 5 * normal as the reference codes it (the paper's text writes
+    # the weights as lambda_d and lambda_n without values).
+    return PlaneOptConfig(name="paper", epochs=0, iterations=6000, downscale=1, split_grad_reduce="max",
+                          depth_loss_on_rendered=True, normal_loss_normalized=True, normal_loss_on_rendered=True,
+                          normal_frame="world", adam_betas=(0.9, 0.99), adam_eps=1e-15, reset_moments_on_recenter=True,
+                          split_after_rounds=1, cull_back_faces=True, min_center_depth=0.2, max_hits=30,
+                          init=PlaneInitConfig(voxel_size=0.01, depth_downscale=1))
 
 
 confs = {"fast": _fast(), "fast-lines": _fast_lines(), "paper": _paper()}
@@ -162,15 +182,25 @@ class ViewTarget:
     normal_valid: torch.Tensor  # (h, w) bool
 
 
+def training_camera(camera, conf: PlaneOptConfig):
+    """The camera a view of ``camera`` trains at under ``conf`` (``conf.downscale``, 0 = towards ``target_width``).
+
+    The one definition of the training grid: the targets, the renders and the line term's regions all take it from
+    the :class:`ViewTarget`, never from a scale factor of their own (a width ratio rounds the height differently:
+    1752x1168 / 5 is 350x234, but 1168 x 350 / 1752 rounds to 233).
+    """
+    ds = working_downscale(conf.downscale, camera.width, conf.target_width)
+    return camera if ds <= 1 else camera.scaled(1.0 / ds)
+
+
 def view_target(frame, conf: PlaneOptConfig, device=None) -> ViewTarget:
     """The :class:`ViewTarget` of one :class:`~lipmap.planes.init.DepthFrame` (full-resolution depth).
 
     Normals come from ``view.load_normals()`` when the view has a normal map, else from the
     full-resolution depth (:func:`lipmap.normals.normals_from_depth`), then both maps are resized
-    to the working resolution by nearest sampling.
+    to the working resolution (:func:`training_camera`) by nearest sampling.
     """
-    ds = working_downscale(conf.downscale, frame.camera.width, conf.target_width)
-    cam = frame.camera if ds <= 1 else frame.camera.scaled(1.0 / ds)
+    cam = training_camera(frame.camera, conf)
     normals = frame.view.load_normals() if getattr(frame.view, "normal_path", None) is not None else None
     if normals is None:
         step = conf.normal_step or max(2, frame.camera.width // 80)
@@ -218,20 +248,33 @@ class TargetStore:
 def plane_loss(render: RenderOutput, target: ViewTarget, conf: PlaneOptConfig) -> Optional[tuple]:
     """(loss, parts) = depth_weight * L1(depth) + normal_weight * (L1(normal) + mean(1 - n . n_gt)).
 
-    Means run over the pixels with valid targets (the paper's sums, normalised). Returns None when
-    the view has no valid target pixel or the render has no gradient path (nothing visible).
+    Means run over the pixels with valid targets (the paper's sums, normalised), and with
+    ``conf.depth_loss_on_rendered`` / ``conf.normal_loss_on_rendered`` only over those the render covers (alpha >
+    1e-5). The rendered normal is the alpha-weighted sum of the hit planes' normals: ``conf.normal_loss_normalized``
+    compares unit normals (the reference), else it is compared as it is. ``conf.normal_frame`` "world" compares them
+    rotated into the world frame (the reference), "camera" as rendered. Returns None when the view has no valid
+    target pixel or the render has no gradient path (nothing visible).
     """
     parts = {}
     loss = None
     if render.n_pairs == 0:  # every plane culled for this view
         return None
-    valid = target.depth_valid & (render.alpha.detach() > 1e-5) if conf.depth_loss_on_rendered else target.depth_valid
+    rendered = render.alpha.detach() > 1e-5
+    valid = target.depth_valid & rendered if conf.depth_loss_on_rendered else target.depth_valid
     if render.depth.requires_grad and bool(valid.any()):
         dl = (render.depth - target.depth)[valid].abs().mean()
         parts["depth"] = float(dl.detach())
         loss = conf.depth_weight * dl
-    if render.normal.requires_grad and bool(target.normal_valid.any()):
-        pn, gn = render.normal[target.normal_valid], target.normal[target.normal_valid]
+    nvalid = target.normal_valid & rendered if conf.normal_loss_on_rendered else target.normal_valid
+    if render.normal.requires_grad and bool(nvalid.any()):
+        pn, gn = render.normal[nvalid], target.normal[nvalid]
+        if conf.normal_loss_normalized:
+            pn, gn = torch.nn.functional.normalize(pn, dim=-1), torch.nn.functional.normalize(gn, dim=-1)
+        if conf.normal_frame == "world":  # n_world = R^T n_cam, as rows
+            R = target.cam_from_world[:3, :3].to(pn.dtype)
+            pn, gn = pn @ R, gn @ R
+        elif conf.normal_frame != "camera":
+            raise InputError(f"normal_frame must be 'camera' or 'world', got {conf.normal_frame!r}")
         nl = (pn - gn).abs().sum(-1).mean() + (1 - (pn * gn).sum(-1)).mean()
         parts["normal"] = float(nl.detach())
         loss = conf.normal_weight * nl if loss is None else loss + conf.normal_weight * nl
@@ -358,7 +401,9 @@ def _make_optimizer(params: list, conf: PlaneOptConfig, old: Optional[torch.opti
             {"params": [params[0]], "lr": conf.lr_center},
             {"params": [params[1]], "lr": conf.lr_quat},
             {"params": [params[2]], "lr": conf.lr_radii},
-        ]
+        ],
+        betas=tuple(conf.adam_betas),
+        eps=conf.adam_eps,
     )
     if old is not None and parent is not None:
         for g_old, g_new in zip(old.param_groups, opt.param_groups):
@@ -482,12 +527,40 @@ def _apply_step(opt: torch.optim.Adam, params: list, total: torch.Tensor, reset_
     return radii_grad
 
 
+def _rendered_subset(params: list, cam_from_world: torch.Tensor, conf: PlaneOptConfig) -> Optional[torch.Tensor]:
+    """Indices :math:`(K',)` of the planes this view renders under the reference's culling (``conf.cull_back_faces``,
+    ``conf.min_center_depth``); None when nothing is culled. A plane faces the camera or not over its whole area, so
+    culling whole planes before rendering is exact."""
+    if not (conf.cull_back_faces or conf.min_center_depth > 0):
+        return None
+    with torch.no_grad():
+        R, t = cam_from_world[:3, :3].to(params[0].dtype), cam_from_world[:3, 3].to(params[0].dtype)
+        c = params[0] @ R.T + t
+        keep = c[:, 2] >= conf.min_center_depth
+        if conf.cull_back_faces:
+            n = quat_to_rotmat(params[1])[..., 2] @ R.T
+            keep &= (n * c).sum(-1) < 0  # the normal points back towards the camera centre
+        return keep.nonzero().squeeze(1)
+
+
+def render_target(params: list, tgt: ViewTarget, lam: float, conf: PlaneOptConfig) -> RenderOutput:
+    """The differentiable render of the planes ``params`` = [center, quat, radii] in ``tgt``'s training camera, with
+    the culling of ``conf``; ``hits`` index ``params`` (culled planes are never hit)."""
+    idx = _rendered_subset(params, tgt.cam_from_world, conf)
+    p = params if idx is None else [t.index_select(0, idx) for t in params]
+    out = rasterize_planes(p[0], p[1], p[2], tgt.cam_from_world, tgt.camera.params, tgt.camera.width,
+                           tgt.camera.height, lam, conf.max_hits, conf.tile_size)
+    if idx is not None:  # subset indices -> indices of params; -1 stays -1 (the appended last entry)
+        idx = torch.cat([idx, idx.new_full((1,), -1)])
+        out = RenderOutput(out.depth, out.normal, out.alpha, idx[torch.where(out.hits >= 0, out.hits, len(idx) - 1)])
+    return out
+
+
 def _train_view(params, opt, tgt: ViewTarget, it: int, sched: Schedule, extra_loss, stats: _EpochStats):
     """One iteration on one view; returns the total loss (None when the view gave no gradient)."""
     conf = sched.conf
     sched.set_lr(opt, it)
-    out = rasterize_planes(params[0], params[1], params[2], tgt.cam_from_world, tgt.camera.params,
-                           tgt.camera.width, tgt.camera.height, sched.lam(it), conf.max_hits, conf.tile_size)
+    out = render_target(params, tgt, sched.lam(it), conf)
     pl = plane_loss(out, tgt, conf)
     extra = None if extra_loss is None else extra_loss(tgt.view, Planes(params[0], params[1], params[2]), it, out, tgt)
     total = _total_loss(pl, extra, conf.plane_weight * sched.decay(it))
@@ -501,16 +574,17 @@ def _train_view(params, opt, tgt: ViewTarget, it: int, sched: Schedule, extra_lo
     return total
 
 
-def _restructure(params: list, opt, stats: _EpochStats, it: int, sched: Schedule, hist: dict, seen=None):
-    """One prune/split round (after iteration ``it``); ``seen``: the planes some view saw, when planes no view saw
-    are to be pruned now (None: not this round). Returns (params, optimizer, index map) of the new plane set."""
+def _restructure(params: list, opt, stats: _EpochStats, it: int, sched: Schedule, hist: dict, seen=None,
+                 n_round: int = 0):
+    """Prune/split round ``n_round`` (0-based, after iteration ``it``); ``seen``: the planes some view saw, when planes
+    no view saw are to be pruned now (None: not this round). Returns (params, optimizer, index map) of the new set."""
     conf = sched.conf
     radii_grad = stats.radii_grad()
     seen_g = radii_grad[stats.grad_count > 0].max(1).values
     if len(seen_g):
         q = torch.quantile(seen_g.float(), torch.tensor([0.5, 0.9, 0.99], device=seen_g.device)).tolist()
         hist.setdefault("radii_grad_q50_q90_q99", []).append([round(x, 4) for x in q])
-    do_split = conf.split and it <= sched.split_stop and it < sched.max_iters  # never after the last step
+    do_split = conf.split and n_round >= conf.split_after_rounds and it <= sched.split_stop and it < sched.max_iters
     current = Planes(*(p.detach() for p in params))
     new, imap = prune_and_split(
         current,
@@ -614,7 +688,8 @@ def optimize_planes(
                 continue
             # "seen by no view" only where the round trained on every view (not so in a last round cut short by
             # the budget, or a round that is not a whole number of epochs and straddles two)
-            params, opt, imap = _restructure(params, opt, stats, it, sched, hist, stats.seen if visited.all() else None)
+            params, opt, imap = _restructure(params, opt, stats, it, sched, hist, stats.seen if visited.all() else None,
+                                             n_round)
             visited[:] = False
             if on_restructure:
                 on_restructure(imap)
