@@ -132,14 +132,19 @@ ALLOW_DIRTY_ENV = "LIPMAP_BENCH_ALLOW_DIRTY"
 _DEFAULT_RESULTS = RESULTS
 
 
+# what benchmark runs write themselves: a series of runs from one commit stays clean
+_NOT_CODE = ("benchmarks/results", "README.md", "docs")
+
+
+def _code_status(*opts: str) -> str:
+    """``git status`` of the tracked files outside :data:`_NOT_CODE`."""
+    return _git("status", *opts, "--untracked-files=no", "--", ".", *(f":!{p}" for p in _NOT_CODE))
+
+
 def dirty() -> bool:
     """Whether the checkout has uncommitted changes to tracked files (figures from it reproduce from no commit);
     the figures already written into ``benchmarks/results/`` and the documents generated from them do not count."""
-    return bool(_git("status", "--porcelain", "--untracked-files=no", "--", ".", *(f":!{p}" for p in _NOT_CODE)))
-
-
-# what benchmark runs write themselves: a series of runs from one commit stays clean
-_NOT_CODE = ("benchmarks/results", "README.md", "docs")
+    return bool(_code_status("--porcelain"))
 
 
 def require_clean() -> None:
@@ -148,7 +153,7 @@ def require_clean() -> None:
     if RESULTS == _DEFAULT_RESULTS and os.environ.get(ALLOW_DIRTY_ENV) != "1" and dirty():
         raise SystemExit(f"benchmarks/results: the tree has uncommitted changes, so these figures would reproduce from no "
                          f"commit. Commit first (or run from a clean worktree), or set {ALLOW_DIRTY_ENV}=1 to write "
-                         f"them marked '(uncommitted changes)'.\n{_git('status', '--short', '--untracked-files=no', '--', '.', *(f':!{p}' for p in _NOT_CODE))}")
+                         f"them marked '(uncommitted changes)'.\n{_code_status('--short')}")
 
 
 def write(name: str, data: dict, argv=None) -> Path:
