@@ -270,7 +270,7 @@ def first_hit_torch(corners, origins, dirs, chunk: int = 2048):
         P = len(origins)
         best_t = torch.full((P,), float("inf"), dtype=corners.dtype, device=corners.device)
         best_k = torch.full((P,), -1, dtype=torch.long, device=corners.device)
-        for s in range(0, P, chunk):
+        for s in range(0, P if len(corners) else 0, chunk):
             t = _ray_rect_t(*frames, origins[s : s + chunk, None], dirs[s : s + chunk, None])  # (p, K)
             tmin, kmin = t.min(dim=1)
             best_t[s : s + chunk] = tmin
@@ -278,7 +278,28 @@ def first_hit_torch(corners, origins, dirs, chunk: int = 2048):
         return best_k, best_t
 
 
-def first_hit_in_render(corners, candidates, origins, dirs, complete):
+def _hit_backend(backend, corners) -> str:
+    """``"warp"`` (:mod:`lipmap.planes.raycast_warp`) or ``"torch"`` for casting rays on ``corners``: the renderer's
+    choice (:func:`lipmap.planes.render.resolve_backend`, ``LIPMAP_RENDER_BACKEND``)."""
+    from ..planes.render import resolve_backend
+
+    return resolve_backend(backend, corners.device, corners.dtype, 1)
+
+
+def first_hit(corners, origins, dirs, backend=None):
+    """The first rectangle (hard borders) each ray meets: :math:`(P,)` long, -1 where none. The Warp kernel where it
+    runs (one thread per ray), else :func:`first_hit_torch`; ``backend`` as the renderer's."""
+    import torch
+
+    if _hit_backend(backend, corners) == "warp":
+        from ..planes import raycast_warp
+
+        with torch.no_grad():
+            return raycast_warp.first_hit(_rect_frames(corners), origins, dirs)
+    return first_hit_torch(corners, origins, dirs)[0]
+
+
+def first_hit_in_render(corners, candidates, origins, dirs, complete, backend=None):
     """The first rectangle (hard borders) each ray meets, among the planes a render composited along it.
 
     A render lists, nearest first, the planes whose splat weight along a pixel's ray exceeds its threshold; inside
@@ -292,11 +313,18 @@ def first_hit_in_render(corners, candidates, origins, dirs, complete):
 
     Returns:
         plane index :math:`(P,)` long (-1 miss).
+
+    ``backend`` as the renderer's: ``"warp"`` runs :func:`lipmap.planes.raycast_warp.first_hit`, the fused twin of
+    the torch code below.
     """
     import torch
 
     with torch.no_grad():
         frames = _rect_frames(corners)
+        if _hit_backend(backend, corners) == "warp":
+            from ..planes import raycast_warp
+
+            return raycast_warp.first_hit(frames, origins, dirs, candidates, complete)
         k = candidates.clamp(min=0)
         t = _ray_rect_t(*(f[k] for f in frames), origins[:, None], dirs[:, None])  # (P, M)
         t = torch.where(candidates >= 0, t, torch.full_like(t, float("inf")))

@@ -11,7 +11,7 @@ import torch
 
 from ..frames import DEFAULT_CAPACITY, LRU
 from ..planes.primitives import TRANSMITTANCE_EPS
-from .assign import (best_edges, first_hit_in_render, first_hit_torch, line_regions, pixel_rays_camera,
+from .assign import (best_edges, first_hit, first_hit_in_render, line_regions, pixel_rays_camera,
                      pixel_rays_world)
 from .depth_lookup import depth_window, nearest_depth_residual
 from .losses import line_loss
@@ -129,8 +129,8 @@ class LineSupervision:
             take = order[rank < self.pixels_per_line]
             pix, li = pix[take], li[take]
             o, d = pixel_rays_world(pix, view.cam_from_world, camera)
-            k, _ = first_hit_torch(corners, torch.as_tensor(o, dtype=corners.dtype, device=corners.device),
-                                   torch.as_tensor(d, dtype=corners.dtype, device=corners.device))
+            k = first_hit(corners, torch.as_tensor(o, dtype=corners.dtype, device=corners.device),
+                          torch.as_tensor(d, dtype=corners.dtype, device=corners.device))
             ok_pix = self._depth_ok(take, k.cpu().numpy(), corners, view, camera, target)
             if ok_pix is not None:
                 k = torch.where(torch.as_tensor(ok_pix != 0, device=k.device), k, torch.full_like(k, -1))
@@ -165,7 +165,7 @@ class LineSupervision:
         o = torch.as_tensor(o, dtype=corners.dtype, device=corners.device)
         d = torch.as_tensor(d, dtype=corners.dtype, device=corners.device)
         if render is None:
-            return first_hit_torch(corners, o, d)[0].cpu().numpy()
+            return first_hit(corners, o, d).cpu().numpy()
         cand = render.hits[rows, cols].to(corners.device)
         # a list is whole unless it is full or the transmittance behind it ran out
         complete = (cand[:, -1] < 0) & (render.alpha.detach()[rows, cols].to(corners.device) < 1 - TRANSMITTANCE_EPS)
