@@ -228,6 +228,39 @@ class TestEdgeCases:
             assert float(o.depth.detach()[hit].min()) > NEAR * 0.99
 
     @needs_warp
+    @pytest.mark.parametrize("near", [0.1, 0.3])
+    def test_near_plane_setting(self, near):
+        """``near`` (the reference's 0.1 m) moves the clipping in both backends and the all-pairs twin alike: the
+        parts of the planes nearer than it vanish, what lies behind it renders as with the default."""
+        # a slanted plane from z = 0.035 to 0.245 m across the image, and a wall behind it
+        p = Planes.from_normals(np.array([[0.0, 0.0, 0.14], [0.0, 0.0, 0.8]]), np.array([[1.5, 0.0, -1.0], [0, 0, -1.0]]),
+                                np.ones(2))
+        planes = Planes(p.center, p.quat, torch.full((2, 4), 0.5))
+        out, params = {}, {}
+        for backend in ("warp", "torch"):
+            P = [t.clone().requires_grad_() for t in planes.tensors()]
+            out[backend] = rasterize_planes(*P, torch.eye(4), INTR, W, H, 1500.0, backend=backend, near=near)
+            params[backend] = P
+        assert_same_render(out["warp"], out["torch"], grads(out["warp"], params["warp"]),
+                           grads(out["torch"], params["torch"]))
+        base = rasterize_planes(*planes.tensors(), torch.eye(4), INTR, W, H, 1500.0, backend="torch")
+        d_near, d_base = out["torch"].depth.detach(), base.depth
+        first_near, first_base = out["torch"].hits[..., 0], base.hits[..., 0]
+        cut = (first_base >= 0) & (d_base < near)  # drawn in front of the new near plane before
+        assert bool(cut.any()) and not bool(((first_near >= 0) & (d_near < near * 0.999)).any())
+        assert bool((first_near[cut] == 1).all())  # the wall behind shows through
+        far = (first_base >= 0) & (d_base > near * 1.2) & (base.alpha > 0.999)
+        assert bool(far.any()) and torch.equal(first_near[far], first_base[far])
+        d_all, _, _ = _render_all_pairs(*planes.tensors(), torch.eye(4), INTR, W, H, 1500.0, near=near)
+        torch.testing.assert_close(d_all, d_near, atol=1e-4, rtol=0)
+
+    def test_near_plane_must_be_finite_and_not_negative(self):
+        p = random_planes(3)
+        for near in (-0.1, float("inf"), float("nan")):
+            with pytest.raises(InputError, match="near plane"):
+                rasterize_planes(*p.tensors(), torch.eye(4), INTR, W, H, 300.0, near=near)
+
+    @needs_warp
     def test_float64_and_too_many_hits_fall_back_or_fail_clearly(self):
         p = random_planes(5)
         out = rasterize_planes(*(t.double() for t in p.tensors()), torch.eye(4), INTR, W, H, 300.0)  # auto: torch

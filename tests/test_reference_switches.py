@@ -249,6 +249,22 @@ def test_culled_planes_are_not_rendered():
     assert seen == {"fast": [True, True, True], "paper": [True, False, False]}
 
 
+def test_paper_near_plane_is_the_reference_s():
+    """The reference renders nothing nearer than z = 0.1 m; fast's near plane is 1 cm. A slanted plane (centre 0.25 m,
+    so near-centre culling keeps it) reaches z = 0.08 m at the image's left edge."""
+    planes = Planes.from_normals([[0.0, 0, 0.25]], [[4.0, 0, -1.0]], [0.5])
+    tgt = ViewTarget(None, CAM, torch.eye(4), torch.zeros(80, 100), torch.zeros(80, 100, 3),
+                     torch.zeros(80, 100, dtype=torch.bool), torch.zeros(80, 100, dtype=torch.bool))
+    nearest = {}
+    for name in ("fast", "paper"):
+        conf = replace(PlaneOptConfig.preset(name), max_hits=5)
+        out = render_target(planes.tensors(), tgt, 1500.0, conf)
+        hit = out.hits[..., 0] >= 0
+        nearest[name] = float((out.depth.detach() / out.alpha.detach().clamp(min=1e-9))[hit & (out.alpha > 0.99)].min())
+    assert PlaneOptConfig.preset("paper").near == 0.1 and PlaneOptConfig.preset("fast").near == 0.01
+    assert nearest["fast"] < 0.09 and 0.0999 < nearest["paper"] < 0.11
+
+
 def test_paper_splits_after_one_pass_over_the_views():
     # the reference's trainer splits when iter > split_start_ite = the number of views: from the second round on
     planes = Planes.from_normals([[0.0, 0, 2.0]], [[0, 0, -1.0]], [0.2])

@@ -30,6 +30,7 @@ def _render_all_pairs(
     height: int,
     lam: float,
     max_hits: int = MAX_HITS,
+    near: float = NEAR,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """PyTorch all-pairs implementation of :func:`lipmap.planes.render.rasterize_planes`.
 
@@ -67,7 +68,7 @@ def _render_all_pairs(
     w = torch.minimum(_axis_weight(px, r[:, 0], r[:, 1], lam), _axis_weight(py, r[:, 2], r[:, 3], lam))
 
     # planar blending: the M nearest intersections with weight > WEIGHT_EPS, front to back
-    valid = finite & (t > NEAR) & (w > WEIGHT_EPS)
+    valid = finite & (t > near) & (w > WEIGHT_EPS)
     key = torch.where(valid, t, torch.full_like(t, float("inf"))).detach()
     k = min(max_hits, key.shape[1])
     key_sel, idx = torch.topk(key, k, dim=1, largest=False, sorted=True)

@@ -29,7 +29,7 @@ from ..normals import normals_from_depth
 from ..presets import resolve
 from .init import LazyDepthFrames, PlaneInitConfig, init_planes, resize_nearest, working_downscale
 from .io import export_planes_ply, save_planes
-from .primitives import MAX_HITS, Planes, quat_to_rotmat
+from .primitives import MAX_HITS, NEAR, Planes, quat_to_rotmat
 from .render import TILE_SIZE, RenderOutput, lambda_schedule, rasterize_planes
 
 
@@ -95,6 +95,7 @@ class PlaneOptConfig:
     # planes whose centre is nearer than 0.2 m (its near culling); ours renders both sides and culls nothing
     cull_back_faces: bool = False
     min_center_depth: float = 0.0  # m
+    near: float = NEAR  # m: the renderer's near plane (reference: 0.1); nearer intersections are not rendered
     max_planes: int = 20000  # splitting never grows the set beyond this
     seed: int = 0
     device: str = "auto"  # "auto" = CUDA when available
@@ -154,12 +155,12 @@ def _paper() -> PlaneOptConfig:
     # whatever the views, lr 1e-3 with its Adam (betas 0.9 / 0.99, eps 1e-15, centre and radii moments zeroed after
     # each step), 1 cm voxels, its depth and normal losses (unit normals in the world frame, over the rendered
     # pixels), its split criterion from the second round, and its renderer's 30 contributors per pixel, back-face
-    # and near-centre culling. Plane loss 2 * depth + 5 * normal as the reference codes it (the paper's text writes
-    # the weights as lambda_d and lambda_n without values).
+    # and near-centre culling, its near plane at 0.1 m. Plane loss 2 * depth + 5 * normal as the reference codes it
+    # (the paper's text writes the weights as lambda_d and lambda_n without values).
     return PlaneOptConfig(name="paper", epochs=0, iterations=6000, downscale=1, split_grad_reduce="max",
                           depth_loss_on_rendered=True, normal_loss_normalized=True, normal_loss_on_rendered=True,
                           normal_frame="world", adam_betas=(0.9, 0.99), adam_eps=1e-15, reset_moments_on_recenter=True,
-                          split_after_rounds=1, cull_back_faces=True, min_center_depth=0.2, max_hits=30,
+                          split_after_rounds=1, cull_back_faces=True, min_center_depth=0.2, near=0.1, max_hits=30,
                           init=PlaneInitConfig(voxel_size=0.01, depth_downscale=1))
 
 
@@ -549,7 +550,7 @@ def render_target(params: list, tgt: ViewTarget, lam: float, conf: PlaneOptConfi
     idx = _rendered_subset(params, tgt.cam_from_world, conf)
     p = params if idx is None else [t.index_select(0, idx) for t in params]
     out = rasterize_planes(p[0], p[1], p[2], tgt.cam_from_world, tgt.camera.params, tgt.camera.width,
-                           tgt.camera.height, lam, conf.max_hits, conf.tile_size)
+                           tgt.camera.height, lam, conf.max_hits, conf.tile_size, near=conf.near)
     if idx is not None:  # subset indices -> indices of params; -1 stays -1 (the appended last entry)
         idx = torch.cat([idx, idx.new_full((1,), -1)])
         out = RenderOutput(out.depth, out.normal, out.alpha, idx[torch.where(out.hits >= 0, out.hits, len(idx) - 1)])

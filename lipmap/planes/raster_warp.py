@@ -90,7 +90,7 @@ def _define(wp):
     """Define the kernels (one Warp module); they compile on first launch per device."""
     vecM = wp.types.vector(length=MAX_HITS_CAP, dtype=wp.float32)
     vecMi = wp.types.vector(length=MAX_HITS_CAP, dtype=wp.int32)
-    near, weps, teps = wp.constant(NEAR), wp.constant(WEIGHT_EPS), wp.constant(TRANSMITTANCE_EPS)
+    weps, teps = wp.constant(WEIGHT_EPS), wp.constant(TRANSMITTANCE_EPS)
     steps, slack = wp.constant(_DEPTH_STEPS), wp.constant(_EXIT_SLACK)
     inf = wp.constant(math.inf)
     # below this the splat weight is certainly under WEIGHT_EPS: such pairs skip the exponential
@@ -134,7 +134,7 @@ def _define(wp):
     @wp.func
     def _tile_touches(tx: int, ty: int, tile: int, width: int, height: int, u_tab: wp.array(dtype=float),
                       v_tab: wp.array(dtype=float), c: wp.vec3, ax: wp.vec3, ay: wp.vec3, n: wp.vec3, r: wp.vec4,
-                      nc: float, mg: float):
+                      nc: float, mg: float, near: float):
         # False when the rays of the tile's 4 corner pixels all meet the plane in front of the near plane and all
         # lie beyond one edge of its dilated rectangle: the hits of the tile's pixels are convex combinations of
         # the corners' (1 / depth is affine in the pixel), so none of them can reach the rectangle
@@ -168,7 +168,7 @@ def _define(wp):
         c: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3), ay: wp.array(dtype=wp.vec3),
         n: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec4), nc: wp.array(dtype=float),
         dilate: float, fx: float, fy: float, cx: float, cy: float, width: int, height: int, tile: int,
-        u_tab: wp.array(dtype=float), v_tab: wp.array(dtype=float),
+        u_tab: wp.array(dtype=float), v_tab: wp.array(dtype=float), near: float,
         rect: wp.array(dtype=wp.vec4i), count: wp.array(dtype=wp.int32), zmin: wp.array(dtype=float),
     ):
         k = wp.tid()
@@ -179,7 +179,7 @@ def _define(wp):
             return
         if not (wp.abs(nc[k]) > 1.0e-9):  # a plane through the camera centre is seen edge-on
             return
-        # the dilated rectangle's corners v1..v4 and, for each edge crossing z = NEAR, the crossing point
+        # the dilated rectangle's corners v1..v4 and, for each edge crossing z = near, the crossing point
         u0, u1, v0, v1, zm = inf, -inf, inf, -inf, inf
         any_pt = int(0)
         for i in range(4):
@@ -224,7 +224,7 @@ def _define(wp):
         cnt = int(0)
         for ty in range(ty0, ty1 + 1):
             for tx in range(tx0, tx1 + 1):
-                if _tile_touches(tx, ty, tile, width, height, u_tab, v_tab, ck, xk, yk, nk, rk, nc[k], dilate):
+                if _tile_touches(tx, ty, tile, width, height, u_tab, v_tab, ck, xk, yk, nk, rk, nc[k], dilate, near):
                     cnt += 1
         count[k] = cnt
 
@@ -232,7 +232,7 @@ def _define(wp):
     def _emit_pairs(
         c: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3), ay: wp.array(dtype=wp.vec3),
         n: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec4), nc: wp.array(dtype=float), dilate: float,
-        width: int, height: int, tile: int, u_tab: wp.array(dtype=float), v_tab: wp.array(dtype=float),
+        width: int, height: int, tile: int, u_tab: wp.array(dtype=float), v_tab: wp.array(dtype=float), near: float,
         rect: wp.array(dtype=wp.vec4i), count: wp.array(dtype=wp.int32), offset: wp.array(dtype=wp.int64),
         zmin: wp.array(dtype=float), ntx: int, keys: wp.array(dtype=wp.int64), planes: wp.array(dtype=wp.int32),
     ):
@@ -246,7 +246,7 @@ def _define(wp):
         for ty in range(rc[1], rc[3] + 1):
             for tx in range(rc[0], rc[2] + 1):
                 if _tile_touches(tx, ty, tile, width, height, u_tab, v_tab, c[k], ax[k], ay[k], n[k], r[k], nc[k],
-                                 dilate):
+                                 dilate, near):
                     keys[o] = wp.int64(ty * ntx + tx) * wp.int64(4294967296) + dq
                     planes[o] = k
                     o += wp.int64(1)
@@ -257,7 +257,7 @@ def _define(wp):
         c: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3), ay: wp.array(dtype=wp.vec3),
         n: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec4), nc: wp.array(dtype=float),
         u_tab: wp.array(dtype=float), v_tab: wp.array(dtype=float), width: int, height: int, ntx: int, tile: int,
-        lam: float, max_hits: int, chunk: int, n_chunks: int,
+        lam: float, max_hits: int, near: float, chunk: int, n_chunks: int,
         hits: wp.array2d(dtype=wp.int64), depth: wp.array(dtype=float), alpha: wp.array(dtype=float),
         normal: wp.array(dtype=wp.vec3),
     ):
@@ -479,7 +479,7 @@ class _Raster(torch.autograd.Function):
     def forward(ctx, c, ax, ay, n, r, nc, u, v, start, cand, zmin, dims):
         kn = _kernels()
         wp = kn["wp"]
-        width, height, ntx, tile, lam, max_hits = dims
+        width, height, ntx, tile, lam, max_hits, near = dims
         dev, P = c.device, width * height
         hits = torch.empty(P, max_hits, dtype=torch.int64, device=dev)
         depth = torch.empty(P, dtype=torch.float32, device=dev)
@@ -489,7 +489,7 @@ class _Raster(torch.autograd.Function):
         v3 = wp.vec3
         common = [_wa(wp, start), _wa(wp, cand), _wa(wp, zmin), _wa(wp, c, v3), _wa(wp, ax, v3), _wa(wp, ay, v3),
                   _wa(wp, n, v3), _wa(wp, r, wp.vec4), _wa(wp, nc), _wa(wp, u), _wa(wp, v), width, height, ntx, tile,
-                  lam, max_hits]
+                  lam, max_hits, near]
         outs = [_wa(wp, hits), _wa(wp, depth), _wa(wp, alpha), _wa(wp, normal, v3)]
         tiles_per_chunk = -(-(len(start) - 1) // n_chunks)
         _launch_chunks(wp, kn["fwd"], tiles_per_chunk * tile * tile, _device(c), n_chunks,
@@ -502,7 +502,7 @@ class _Raster(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_depth, v_normal, v_alpha, _v_hits):
         c, ax, ay, n, r, nc, u, v, hits = ctx.saved_tensors
-        width, height, ntx, tile, lam, max_hits = ctx.dims
+        width, height, ntx, tile, lam, max_hits, _ = ctx.dims
         kn = _kernels()
         wp = kn["wp"]
         P, dev = width * height, c.device
@@ -526,11 +526,12 @@ class _Raster(torch.autograd.Function):
 
 
 def rasterize(cam, u, v, intrinsics, width: int, height: int, lam: float, max_hits: int, tile_size: int,
-              dilate: float):
+              dilate: float, near: float = NEAR):
     """Render camera-frame planes ``cam`` = (c, X, Y, n, r) with the Warp kernels.
 
     ``u`` (W,), ``v`` (H,): the pixel rays (:func:`lipmap.planes.render._pixel_axes`); ``dilate``: how far beyond
-    its rectangle a plane is binned (its weight-1e-4 footprint and a margin). Returns depth (H, W), normal
+    its rectangle a plane is binned (its weight-1e-4 footprint and a margin); ``near``: the near plane's z (m).
+    Returns depth (H, W), normal
     (H, W, 3), alpha (H, W) and hits (H W, M) int64, nearest first (depth ties: lower index first), -1 padded;
     the first three are differentiable w.r.t. ``cam``.
     """
@@ -551,7 +552,7 @@ def rasterize(cam, u, v, intrinsics, width: int, height: int, lam: float, max_hi
                   _wa(wp, n.detach(), v3), _wa(wp, r.detach(), wp.vec4), _wa(wp, nc)]
         if K:
             wp.launch(kn["bin"], dim=K, device=wdev, inputs=planes + [
-                dilate, fx, fy, cx, cy, width, height, tile_size, _wa(wp, u), _wa(wp, v), _wa(wp, rect, wp.vec4i),
+                dilate, fx, fy, cx, cy, width, height, tile_size, _wa(wp, u), _wa(wp, v), near, _wa(wp, rect, wp.vec4i),
                 _wa(wp, count), _wa(wp, zmin)])
         offset = torch.cumsum(count, 0, dtype=torch.int64)
         total = int(offset[-1]) if K else 0  # the step's one host sync: the size of the pair list
@@ -559,12 +560,12 @@ def rasterize(cam, u, v, intrinsics, width: int, height: int, lam: float, max_hi
         pair_plane = torch.empty(total, dtype=torch.int32, device=dev)
         if total:
             wp.launch(kn["emit"], dim=K, device=wdev, inputs=planes + [
-                dilate, width, height, tile_size, _wa(wp, u), _wa(wp, v), _wa(wp, rect, wp.vec4i), _wa(wp, count),
+                dilate, width, height, tile_size, _wa(wp, u), _wa(wp, v), near, _wa(wp, rect, wp.vec4i), _wa(wp, count),
                 _wa(wp, offset), _wa(wp, zmin), ntx, _wa(wp, keys), _wa(wp, pair_plane)])
         keys, order = torch.sort(keys)
         cand = pair_plane[order]
         tiles = torch.arange(ntx * nty + 1, device=dev, dtype=torch.int64) << 32
         start = torch.searchsorted(keys, tiles).to(torch.int32)
     depth, normal, alpha, hits = _Raster.apply(c, ax, ay, n, r, nc, u, v, start, cand, zmin,
-                                               (width, height, ntx, tile_size, float(lam), max_hits))
+                                               (width, height, ntx, tile_size, float(lam), max_hits, float(near)))
     return depth.reshape(height, width), normal.reshape(height, width, 3), alpha.reshape(height, width), hits

@@ -162,9 +162,10 @@ def _pair_terms(g: torch.Tensor, u: torch.Tensor, v: torch.Tensor, lam: float, f
     return t, w, dict(den=den, q=(qx, qy, qz), px=px, py=py, zx=zx, zy=zy, z=z, s=s)
 
 
-def _valid(t: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Pairs a pixel composites at most: in front of the near plane, finite, splat weight above WEIGHT_EPS."""
-    return (t > NEAR) & (t < math.inf) & (w > WEIGHT_EPS)
+def _valid(t: torch.Tensor, w: torch.Tensor, near: float = NEAR) -> torch.Tensor:
+    """Pairs a pixel composites at most: in front of the near plane (z = ``near``), finite, splat weight above
+    WEIGHT_EPS."""
+    return (t > near) & (t < math.inf) & (w > WEIGHT_EPS)
 
 
 def _check_inputs(center, quat, radii, cam_from_world, width, height):
@@ -182,7 +183,7 @@ def _check_inputs(center, quat, radii, cam_from_world, width, height):
 # ------------------------------------------------------------------------------------------------
 # 1. selection (no gradient)
 # ------------------------------------------------------------------------------------------------
-def _screen_boxes(c, ax, ay, n, r, lam, intrinsics, width, height):
+def _screen_boxes(c, ax, ay, n, r, lam, intrinsics, width, height, near=NEAR):
     """Screen boxes (u0, u1, v0, v1) (K,) each of the dilated, near-clipped rectangles, their
     minimum z-depth (K,) and a visibility mask (K,)."""
     fx, fy, cx, cy = intrinsics
@@ -192,13 +193,13 @@ def _screen_boxes(c, ax, ay, n, r, lam, intrinsics, width, height):
     V = c[:, None] + sx * ax[:, None] + sy * ay[:, None]  # (K, 4, 3)
     V2 = V.roll(-1, dims=1)
     z, z2 = V[..., 2], V2[..., 2]
-    # the polygon clipped to z >= NEAR: its front corners plus the edges' crossings of z = NEAR
-    cross = (z - NEAR) * (z2 - NEAR) < 0
-    s = ((NEAR - z) / torch.where(cross, z2 - z, torch.ones_like(z))).clamp(0, 1)
+    # the polygon clipped to z >= near: its front corners plus the edges' crossings of z = near
+    cross = (z - near) * (z2 - near) < 0
+    s = ((near - z) / torch.where(cross, z2 - z, torch.ones_like(z))).clamp(0, 1)
     Vc = V + s[..., None] * (V2 - V)
     pts = torch.cat([V, Vc], 1)  # (K, 8, 3)
-    ok = torch.cat([z >= NEAR, cross], 1)
-    zz = torch.where(ok, pts[..., 2], torch.ones_like(pts[..., 2])).clamp(min=NEAR)
+    ok = torch.cat([z >= near, cross], 1)
+    zz = torch.where(ok, pts[..., 2], torch.ones_like(pts[..., 2])).clamp(min=near)
     u = fx * pts[..., 0] / zz + cx
     v = fy * pts[..., 1] / zz + cy
     inf = torch.full_like(u, float("inf"))
@@ -233,7 +234,8 @@ def _tile_pairs(boxes, vis, width, height, tile_size):
     return tile, pid[rep[order]], ntx, nty
 
 
-def _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, tab, zmin, margin, max_hits):
+def _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, tab, zmin, margin, max_hits,
+                   near=NEAR):
     """Keep-mask over (tile, plane) pairs: drop candidates no pixel of the tile can composite.
 
     Both tests look at the rays of the tile's 4 corner pixels: a rectangle seen from the camera is
@@ -263,7 +265,7 @@ def _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, tab, 
     t, _, a = _pair_terms(g[..., None], u, v, 1.0, full=True)
     # distance outside the rectangle along X and Y at each corner (lam = 1 gives it in metres)
     e = torch.maximum(-a["zx"], -a["zy"]).amax(1)
-    front = (t > NEAR).all(1) & torch.isfinite(t).all(1)
+    front = (t > near).all(1) & torch.isfinite(t).all(1)
     full = front & (e <= 0)
     covered = front & (e < margin * (1 - 1e-3))
     # the 4 corners' hits all beyond one edge of the dilated rectangle: so are all the tile's pixels' (their
@@ -309,38 +311,40 @@ def select_hits(
     lam: float,
     max_hits: int = MAX_HITS,
     tile_size: int = TILE_SIZE,
+    near: float = NEAR,
 ) -> torch.Tensor:
     """Which planes each pixel composites (torch backend): :math:`(H W, M)` int64, nearest first, -1 padded.
 
-    A pixel's candidates are the intersections with t > NEAR and splat weight > WEIGHT_EPS; it keeps
+    A pixel's candidates are the intersections with t > ``near`` and splat weight > WEIGHT_EPS; it keeps
     the M nearest (depth ties: lower plane index first) and of those the ones in front of the point
     where the transmittance falls below TRANSMITTANCE_EPS.
     """
     _check_inputs(center, quat, radii, cam_from_world, width, height)
     intrinsics = tuple(float(v) for v in intrinsics)
     cam = _planes_in_camera(center, quat, radii, cam_from_world.to(device=center.device, dtype=center.dtype))
-    return _select(cam, _plane_table(*cam), intrinsics, width, height, lam, max_hits, tile_size)
+    return _select(cam, _plane_table(*cam), intrinsics, width, height, lam, max_hits, tile_size, near=near)
 
 
-def _select(cam, tab, intrinsics, width, height, lam, max_hits, tile_size, tw=None) -> torch.Tensor:
+def _select(cam, tab, intrinsics, width, height, lam, max_hits, tile_size, tw=None, near=NEAR) -> torch.Tensor:
     """:func:`select_hits` on camera-frame planes; fills ``tw`` = (depth, weight) (P, M) of the hits when given."""
     c, ax, ay, n, r = (x.detach() for x in cam)
     dev = c.device
     hits = torch.full((width * height, max_hits), -1, dtype=torch.long, device=dev)
     if len(c) == 0:
         return hits
-    boxes, zmin, vis = _screen_boxes(c, ax, ay, n, r, lam, intrinsics, width, height)
+    boxes, zmin, vis = _screen_boxes(c, ax, ay, n, r, lam, intrinsics, width, height, near)
     if not bool(vis.any()):
         return hits
     tile, plane, ntx, nty = _tile_pairs(boxes, vis, width, height, tile_size)
     if len(tile) == 0:
         return hits
     margin = SPLAT_MARGIN / lam
-    keep = _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, tab, zmin, margin, max_hits)
+    keep = _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, tab, zmin, margin, max_hits, near)
     tile, plane = tile[keep], plane[keep]
     rank, size = _group_sizes(tile, ntx * nty, max_hits)
     u, v = _pixel_axes(width, height, intrinsics, c.dtype, dev)
-    _select_in_groups(hits, tile, plane, rank, size, len(c), ntx, nty, tile_size, width, height, u, v, tab, lam, tw)
+    _select_in_groups(hits, tile, plane, rank, size, len(c), ntx, nty, tile_size, width, height, u, v, tab, lam, tw,
+                      near)
     return hits
 
 
@@ -356,7 +360,8 @@ def _group_sizes(tile, n_tiles: int, max_hits: int):
     return rank, size
 
 
-def _select_in_groups(hits, tile, plane, rank, size, K, ntx, nty, tile_size, width, height, u, v, tab, lam, tw=None):
+def _select_in_groups(hits, tile, plane, rank, size, K, ntx, nty, tile_size, width, height, u, v, tab, lam, tw=None,
+                      near=NEAR):
     """Fill ``hits`` (and the depths and weights ``tw``, when given) group by group: the tiles of one padded size
     L share one batched evaluation."""
     dev = hits.device
@@ -381,7 +386,7 @@ def _select_in_groups(hits, tile, plane, rank, size, K, ntx, nty, tile_size, wid
             row = (torch.div(tiles_b, ntx, rounding_mode="floor") * ts)[:, None] + ly
             inside = (col < width) & (row < height)
             uc, vr = u[col.clamp(max=width - 1)], v[row.clamp(max=height - 1)]
-            sel, ts_, ws_ = _nearest_hits(uc, vr, inside, cand, tab, lam, max_hits)
+            sel, ts_, ws_ = _nearest_hits(uc, vr, inside, cand, tab, lam, max_hits, near)
             pix = (row * width + col)[inside]
             hits[pix, : sel.shape[-1]] = sel[inside]
             if tw is not None:
@@ -389,7 +394,7 @@ def _select_in_groups(hits, tile, plane, rank, size, K, ntx, nty, tile_size, wid
                 tw[1][pix, : sel.shape[-1]] = ws_[inside]
 
 
-def _nearest_hits(u, v, inside, cand, tab, lam, max_hits):
+def _nearest_hits(u, v, inside, cand, tab, lam, max_hits, near=NEAR):
     """Per pixel, the min(max_hits, L) nearest of its tile's L candidates it composites (nb, S, k), -1 padded,
     and their depths and weights (0 where unused).
 
@@ -399,7 +404,7 @@ def _nearest_hits(u, v, inside, cand, tab, lam, max_hits):
     nb, L = cand.shape
     S, k = u.shape[1], min(max_hits, L)
     t, w = _pair_terms(_gather(tab, cand[:, None, :]), u[..., None], v[..., None], lam)  # (nb, S, L)
-    ok = _valid(t, w) & inside[..., None]
+    ok = _valid(t, w, near) & inside[..., None]
     if t.dtype == torch.float32 and L < (1 << 16):
         # one key per pair: the depth's bits (t > 0 sorts as its bits do) then the column, i.e. the plane order;
         # distinct keys, so any sort orders them by (depth, plane index). A whole-row sort is faster than topk
@@ -583,6 +588,7 @@ def rasterize_planes(
     max_hits: int = MAX_HITS,
     tile_size: int = TILE_SIZE,
     backend: str | None = None,
+    near: float = NEAR,
 ) -> RenderOutput:
     """Render planes into one pinhole camera; differentiable w.r.t. center, quat and radii.
 
@@ -595,6 +601,8 @@ def rasterize_planes(
         max_hits: M, intersections composited per pixel (the Warp kernel takes up to 32).
         tile_size: tile edge in pixels for the binning (speed only; results do not depend on it).
         backend: ``"auto"``, ``"torch"`` or ``"warp"`` (see the module docstring); None: :data:`DEFAULT_BACKEND`.
+        near: the near plane's z-depth in metres: intersections nearer the camera are not rendered (default
+            :data:`~lipmap.planes.primitives.NEAR`, 1 cm; the reference code's is 0.1 m).
 
     Returns:
         :class:`RenderOutput` (depth, normal, alpha, hits).
@@ -605,6 +613,8 @@ def rasterize_planes(
     _check_inputs(center, quat, radii, cam_from_world, width, height)
     if max_hits < 1:
         raise InputError(f"max_hits must be at least 1, got {max_hits}")
+    if not (0.0 <= near < math.inf):
+        raise InputError(f"the near plane must lie at a finite z >= 0, got {near}")
     intrinsics = tuple(float(v) for v in intrinsics)
     which = resolve_backend(backend, center.device, center.dtype, max_hits) if len(center) else "torch"
     cam = _planes_in_camera(center, quat, radii, cam_from_world)
@@ -613,12 +623,12 @@ def rasterize_planes(
 
         u, v = _pixel_axes(width, height, intrinsics, center.dtype, center.device)
         depth, normal, alpha, hits = raster_warp.rasterize(cam, u, v, intrinsics, width, height, lam, max_hits,
-                                                           tile_size, BIN_SLACK * SPLAT_MARGIN / lam)
+                                                           tile_size, BIN_SLACK * SPLAT_MARGIN / lam, near)
         return RenderOutput(depth, normal, alpha, hits.reshape(height, width, max_hits))
     tab = _plane_table(*cam)
     P = width * height
     t_w = [torch.zeros(P, max_hits, dtype=center.dtype, device=center.device) for _ in range(2)]
-    hits = _select(cam, tab, intrinsics, width, height, lam, max_hits, tile_size, t_w)
+    hits = _select(cam, tab, intrinsics, width, height, lam, max_hits, tile_size, t_w, near)
     depth, normal, alpha, hits = _composite(cam, hits, intrinsics, width, height, lam, tab, t_w)
     return RenderOutput(depth, normal, alpha, hits.reshape(height, width, max_hits))
 
@@ -632,12 +642,13 @@ def render_planes(
     max_hits: int = MAX_HITS,
     tile_size: int = TILE_SIZE,
     backend: str | None = None,
+    near: float = NEAR,
 ) -> RenderOutput:
     """Render ``planes`` (:class:`Planes`) from a :class:`~lipmap.scene.Camera` at ``1 / downscale`` resolution."""
     cam = camera if downscale == 1 else camera.scaled(1.0 / downscale)
     return rasterize_planes(
         planes.center, planes.quat, planes.radii, cam_from_world, cam.params, cam.width, cam.height, lam, max_hits,
-        tile_size, backend,
+        tile_size, backend, near,
     )
 
 
