@@ -36,6 +36,8 @@ def _git(*args) -> str:
 
 
 THREAD_ENV = ("OMP_WAIT_POLICY", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+# environment variables that change what a run computes or how fast, recorded with its machine
+RECORDED_ENV = THREAD_ENV + ("LIPMAP_RENDER_BACKEND",)
 
 
 def machine() -> dict:
@@ -66,8 +68,9 @@ def machine() -> dict:
             out["gpu"] = torch.cuda.get_device_name(0)
     except ImportError:
         pass
-    # thread settings change timings severalfold: PASSIVE is slower alone, spinning far slower beside a busy process
-    env = {k: os.environ[k] for k in THREAD_ENV if k in os.environ}
+    # thread settings change timings severalfold: PASSIVE is slower alone, spinning far slower beside a busy process;
+    # the renderer backend changes the map at the float level
+    env = {k: os.environ[k] for k in RECORDED_ENV if k in os.environ}
     if env:
         out["env"] = env
     return out

@@ -132,6 +132,28 @@ class TestBadInput:
         assert hist["skipped"] == [2]
         torch.testing.assert_close(planes.center, behind.center)
 
+    def test_non_finite_loss_skips_the_step_on_the_device(self):
+        """A non-finite loss leaves parameters, Adam's moments and its step count as they were, without the host
+        reading the loss: the fused Adam skips the step (its found_inf)."""
+        from lipmap.planes.optimize import _apply_step, _make_optimizer
+
+        params = [t.clone().requires_grad_() for t in noisy_wall_planes().tensors()]
+        opt = _make_optimizer(params, small_conf(epochs=1))
+        assert opt.defaults["fused"]
+        loss = lambda: sum((p ** 2).sum() for p in params)  # noqa: E731
+        _apply_step(opt, params, loss(), taken=torch.tensor(True))
+        before = [p.detach().clone() for p in params] + [opt.state[p][k].clone() for p in params
+                                                         for k in ("exp_avg", "exp_avg_sq", "step")]
+        bad = loss() * float("inf")
+        _apply_step(opt, params, bad, taken=torch.isfinite(bad.detach()))
+        after = [p.detach() for p in params] + [opt.state[p][k] for p in params for k in ("exp_avg", "exp_avg_sq", "step")]
+        # exact, but for the quaternion's renormalisation after every step (1 ulp)
+        torch.testing.assert_close(after.pop(1), before.pop(1), rtol=0, atol=1e-6)
+        assert all(torch.equal(a, b) for a, b in zip(before, after))
+        _apply_step(opt, params, loss(), taken=torch.tensor(True))
+        assert not torch.equal(params[0].detach(), before[0]) and float(opt.state[params[0]]["step"]) == 2
+        assert float(opt.state[params[1]]["step"]) == 2
+
     def test_no_targets(self):
         from lipmap.errors import InputError
 

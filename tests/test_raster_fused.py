@@ -320,6 +320,30 @@ def test_a_fused_step_dispatches_few_operations_and_one_sync():
         assert n.ops <= 300, lam
 
 
+@needs_warp
+def test_a_training_step_syncs_once():
+    """A whole plane-loss training step (render, masked-mean losses, backward, fused Adam, re-centring, the round's
+    statistics) waits for the device only for the renderer's pair count. With boolean-indexed means, any() checks, a
+    float() of the loss and an unfused Adam it waited 14 times (fast and paper alike)."""
+    from lipmap.planes.optimize import PlaneOptConfig, Schedule, ViewTarget, _EpochStats, _make_optimizer, _train_view
+    from lipmap.scene import Camera
+
+    params = [t.clone().requires_grad_() for t in random_planes(60).tensors()]
+    depth = torch.full((H, W), 2.0)
+    normal = torch.zeros(H, W, 3)
+    normal[..., 2] = -1.0
+    tgt = ViewTarget(None, Camera(W, H, INTR), torch.eye(4), depth, normal, depth > 0, normal.norm(dim=-1) > 0.5)
+    for preset in ("fast", "paper"):
+        conf = PlaneOptConfig.preset(preset, progress=False, max_hits=5, cull_back_faces=False, min_center_depth=0.0)
+        opt = _make_optimizer(params, conf)
+        sched, stats = Schedule.of(conf, 1), _EpochStats.zeros(len(params[0]), "cpu")
+        _train_view(params, opt, tgt, 0, sched, None, stats)  # kernels loaded outside the count
+        with CountDispatch() as n:
+            total = _train_view(params, opt, tgt, 1, sched, None, stats)
+        assert total is not None and n.syncs <= 1, (preset, n.syncs)
+        assert stats.means()["skipped"] == 0 and float(stats.used) == 2
+
+
 @pytest.mark.skipif(not torch.cuda.is_available() or not HAVE_WARP, reason="CUDA and warp-lang needed")
 def test_cuda_step_syncs_once_and_matches_the_cpu():
     """The fused step on CUDA syncs once (the size of the pair list): torch's sync debug mode warns once at most."""

@@ -14,6 +14,7 @@ per-plane state across the change.
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -182,6 +183,11 @@ class ViewTarget:
     depth_valid: torch.Tensor  # (h, w) bool
     normal_valid: torch.Tensor  # (h, w) bool
 
+    @functools.cached_property
+    def has_targets(self) -> tuple:
+        """(any valid depth, any valid normal): read from the device once per target, not once per step."""
+        return bool(self.depth_valid.any()), bool(self.normal_valid.any())
+
 
 def training_camera(camera, conf: PlaneOptConfig):
     """The camera a view of ``camera`` trains at under ``conf`` (``conf.downscale``, 0 = towards ``target_width``).
@@ -254,21 +260,23 @@ def plane_loss(render: RenderOutput, target: ViewTarget, conf: PlaneOptConfig) -
     1e-5). The rendered normal is the alpha-weighted sum of the hit planes' normals: ``conf.normal_loss_normalized``
     compares unit normals (the reference), else it is compared as it is. ``conf.normal_frame`` "world" compares them
     rotated into the world frame (the reference), "camera" as rendered. Returns None when the view has no valid
-    target pixel or the render has no gradient path (nothing visible).
+    target pixel or the render has no gradient path; ``parts`` are detached 0-d tensors.
+
+    Masked means over the whole map, never a boolean index: nothing here waits for the device (a mean over no pixel
+    is 0, with no gradient). Whether anything rendered at all is :func:`_train_view`'s to check.
     """
     parts = {}
     loss = None
-    if render.n_pairs == 0:  # every plane culled for this view
-        return None
+    has_depth, has_normal = target.has_targets
     rendered = render.alpha.detach() > 1e-5
     valid = target.depth_valid & rendered if conf.depth_loss_on_rendered else target.depth_valid
-    if render.depth.requires_grad and bool(valid.any()):
-        dl = (render.depth - target.depth)[valid].abs().mean()
-        parts["depth"] = float(dl.detach())
+    if render.depth.requires_grad and has_depth:
+        dl = _masked_mean((render.depth - target.depth).abs(), valid)
+        parts["depth"] = dl.detach()
         loss = conf.depth_weight * dl
     nvalid = target.normal_valid & rendered if conf.normal_loss_on_rendered else target.normal_valid
-    if render.normal.requires_grad and bool(nvalid.any()):
-        pn, gn = render.normal[nvalid], target.normal[nvalid]
+    if render.normal.requires_grad and has_normal:
+        pn, gn = render.normal, target.normal
         if conf.normal_loss_normalized:
             pn, gn = torch.nn.functional.normalize(pn, dim=-1), torch.nn.functional.normalize(gn, dim=-1)
         if conf.normal_frame == "world":  # n_world = R^T n_cam, as rows
@@ -276,10 +284,15 @@ def plane_loss(render: RenderOutput, target: ViewTarget, conf: PlaneOptConfig) -
             pn, gn = pn @ R, gn @ R
         elif conf.normal_frame != "camera":
             raise InputError(f"normal_frame must be 'camera' or 'world', got {conf.normal_frame!r}")
-        nl = (pn - gn).abs().sum(-1).mean() + (1 - (pn * gn).sum(-1)).mean()
-        parts["normal"] = float(nl.detach())
+        nl = _masked_mean((pn - gn).abs().sum(-1), nvalid) + _masked_mean(1 - (pn * gn).sum(-1), nvalid)
+        parts["normal"] = nl.detach()
         loss = conf.normal_weight * nl if loss is None else loss + conf.normal_weight * nl
     return None if loss is None else (loss, parts)
+
+
+def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of ``x`` over ``mask`` (same shape), 0 over an empty mask; no data-dependent shape, so no host sync."""
+    return torch.where(mask, x, 0.0).sum() / mask.sum().clamp(min=1).to(x.dtype)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -405,6 +418,8 @@ def _make_optimizer(params: list, conf: PlaneOptConfig, old: Optional[torch.opti
         ],
         betas=tuple(conf.adam_betas),
         eps=conf.adam_eps,
+        # one fused kernel per step, and a skipped step decided on the device (its found_inf, see _apply_step)
+        fused=all(p.device.type in ("cpu", "cuda") and p.dtype == torch.float32 for p in params),
     )
     if old is not None and parent is not None:
         for g_old, g_new in zip(old.param_groups, opt.param_groups):
@@ -465,11 +480,13 @@ class _EpochStats:
     seen: torch.Tensor  # (K,) bool: planes some view rendered
     grad_sum: torch.Tensor  # (K, 2) sum of mean |grad| of the x radii and of the y radii
     grad_count: torch.Tensor  # (K,) views in which each plane was visible at a step
-    loss: float = 0.0
-    depth: float = 0.0
-    normal: float = 0.0
-    used: int = 0
-    skipped: int = 0
+    # sums over the steps taken, kept on the device and read once per round (float() per step would wait for it)
+    loss: object = 0.0
+    depth: object = 0.0
+    normal: object = 0.0
+    used: object = 0  # steps taken
+    skipped: int = 0  # views without a loss
+    dropped: object = 0  # steps the device skipped (a non-finite loss, or nothing to pull on)
 
     @classmethod
     def zeros(cls, K: int, device) -> "_EpochStats":
@@ -477,43 +494,80 @@ class _EpochStats:
                    torch.zeros(K, device=device))
 
     def add_step(self, total: torch.Tensor, parts: Optional[dict], radii_grad: Optional[torch.Tensor], vis: torch.Tensor,
-                 reduce: str = "mean"):
+                 reduce: str = "mean", taken: Optional[torch.Tensor] = None):
+        """Add one step; ``taken``: a 0-d bool tensor, False where the device skipped it (None: it was taken)."""
         g = radii_grad.abs() if radii_grad is not None else torch.zeros_like(self.grad_sum[:, :1]).expand(-1, 4)
+        w = None if taken is None else taken.to(self.grad_sum.dtype)
+        if w is not None:
+            g = g * w
         if reduce == "max":
             self.grad_sum[:, 0] += torch.maximum(g[:, 0], g[:, 1])
             self.grad_sum[:, 1] += torch.maximum(g[:, 2], g[:, 3])
         else:
             self.grad_sum[:, 0] += 0.5 * (g[:, 0] + g[:, 1])
             self.grad_sum[:, 1] += 0.5 * (g[:, 2] + g[:, 3])
-        self.grad_count += vis.float()
-        self.loss += float(total.detach())
-        self.depth += parts.get("depth", 0.0) if parts else 0.0
-        self.normal += parts.get("normal", 0.0) if parts else 0.0
-        self.used += 1
+        self.grad_count += vis.float() if w is None else vis.float() * w
+
+        def value(x):
+            x = x.detach() if torch.is_tensor(x) else x
+            return x if taken is None else torch.where(taken, x, 0.0)
+
+        self.loss = self.loss + value(total)
+        self.depth = self.depth + (value(parts["depth"]) if parts and "depth" in parts else 0.0)
+        self.normal = self.normal + (value(parts["normal"]) if parts and "normal" in parts else 0.0)
+        self.used = self.used + (1 if taken is None else w)
+        if taken is not None:
+            self.dropped = self.dropped + (1 - w)
+
+    def means(self) -> dict:
+        """The round's mean loss, depth and normal terms over the steps taken, and the views skipped (host floats:
+        the round's one read of these sums)."""
+        n = max(float(self.used), 1.0)
+        return {"loss": float(self.loss) / n, "depth": float(self.depth) / n, "normal": float(self.normal) / n,
+                "skipped": self.skipped + int(round(float(self.dropped)))}
 
     def radii_grad(self) -> torch.Tensor:
         """:math:`(K, 2)` mean |grad| per axis over the views that saw each plane."""
         return self.grad_sum / self.grad_count.clamp(min=1)[:, None]
 
 
+def _pulls(extra) -> bool:
+    """Whether an extra loss term has a gradient path to the planes."""
+    return extra is not None and torch.is_tensor(extra) and extra.requires_grad
+
+
 def _total_loss(pl: Optional[tuple], extra, plane_scale: float):
     """``plane_scale * plane loss + extra`` (either may be missing); None when nothing has a gradient."""
     total = None if pl is None else plane_scale * pl[0]
-    if extra is not None and torch.is_tensor(extra) and extra.requires_grad:
+    if _pulls(extra):
         total = extra if total is None else total + extra
     return total
 
 
-def _apply_step(opt: torch.optim.Adam, params: list, total: torch.Tensor, reset_moments: bool = False):
+def _apply_step(opt: torch.optim.Adam, params: list, total: torch.Tensor, reset_moments: bool = False,
+                taken: Optional[torch.Tensor] = None):
     """Backward, Adam step, then the reference's re-centring and quaternion normalisation (and, with
-    ``reset_moments``, its reset of the centre's and radii's Adam moments, as a replaced tensor gets)."""
+    ``reset_moments``, its reset of the centre's and radii's Adam moments, as a replaced tensor gets).
+
+    ``taken`` (a 0-d bool tensor): False skips the Adam step (parameters, moments and step count untouched). A fused
+    Adam skips it on the device (its ``found_inf``); another optimizer reads the flag (one host sync).
+    """
     opt.zero_grad(set_to_none=False)
     total.backward()
     for p in params:
         if p.grad is not None:
             torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
     radii_grad = params[2].grad.clone() if params[2].grad is not None else None
-    opt.step()
+    if taken is None:
+        opt.step()
+    elif opt.defaults.get("fused"):
+        opt.found_inf = (~taken).to(torch.float32)
+        try:
+            opt.step()
+        finally:
+            opt.found_inf = None
+    elif bool(taken):
+        opt.step()
     with torch.no_grad():
         rec = Planes(params[0], params[1], params[2]).recentered()
         params[0].copy_(rec.center)
@@ -558,7 +612,9 @@ def render_target(params: list, tgt: ViewTarget, lam: float, conf: PlaneOptConfi
 
 
 def _train_view(params, opt, tgt: ViewTarget, it: int, sched: Schedule, extra_loss, stats: _EpochStats):
-    """One iteration on one view; returns the total loss (None when the view gave no gradient)."""
+    """One iteration on one view; returns the total loss as a 0-d tensor, not read here (None when the view has no
+    loss). Nothing but the renderer's pair count waits for the device: whether the step is taken (a finite loss, and
+    a plane drawn or a line term to pull) is decided there."""
     conf = sched.conf
     sched.set_lr(opt, it)
     out = render_target(params, tgt, sched.lam(it), conf)
@@ -567,11 +623,14 @@ def _train_view(params, opt, tgt: ViewTarget, it: int, sched: Schedule, extra_lo
     total = _total_loss(pl, extra, conf.plane_weight * sched.decay(it))
     vis = out.visible_planes(len(params[0]))
     stats.seen |= vis
-    if total is None or not torch.isfinite(total):
+    if total is None:
         stats.skipped += 1
         return None
-    radii_grad = _apply_step(opt, params, total, conf.reset_moments_on_recenter)
-    stats.add_step(total, pl[1] if pl else None, radii_grad, vis, conf.split_grad_reduce)
+    taken = torch.isfinite(total.detach())
+    if not _pulls(extra):  # the plane loss alone has no gradient where nothing was drawn
+        taken = taken & vis.any()
+    radii_grad = _apply_step(opt, params, total, conf.reset_moments_on_recenter, taken)
+    stats.add_step(total, pl[1] if pl else None, radii_grad, vis, conf.split_grad_reduce, taken)
     return total
 
 
@@ -607,10 +666,10 @@ HISTORY_KEYS = ("loss", "depth", "normal", "planes", "pruned", "unseen", "split"
 
 
 def _record_epoch(hist: dict, stats: _EpochStats, imap, n_planes: int, lam: float, seconds: float, epoch: int):
-    n = max(stats.used, 1)
-    for key, value in (("loss", stats.loss / n), ("depth", stats.depth / n), ("normal", stats.normal / n),
+    m = stats.means()
+    for key, value in (("loss", m["loss"]), ("depth", m["depth"]), ("normal", m["normal"]),
                        ("planes", n_planes), ("pruned", imap.n_pruned), ("unseen", imap.n_unseen),
-                       ("split", imap.n_split), ("lambda", lam), ("seconds", seconds), ("skipped", stats.skipped)):
+                       ("split", imap.n_split), ("lambda", lam), ("seconds", seconds), ("skipped", m["skipped"])):
         hist[key].append(value)
     logger.debug("round %d: loss %.4f depth %.4f normal %.4f planes %d (-%d, split %d)", epoch, hist["loss"][-1],
                  hist["depth"][-1], hist["normal"][-1], n_planes, imap.n_pruned, imap.n_split)
@@ -684,7 +743,6 @@ def optimize_planes(
             visited[vi] = True
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(loss=f"{float('nan') if total is None else float(total.detach()):.4f}", planes=len(params[0]))
             if it % every and it < sched.max_iters:
                 continue
             # "seen by no view" only where the round trained on every view (not so in a last round cut short by
@@ -695,6 +753,8 @@ def optimize_planes(
             if on_restructure:
                 on_restructure(imap)
             _record_epoch(hist, stats, imap, len(params[0]), sched.lam(it - 1), time.time() - t0, n_round)
+            if bar is not None:  # the round's mean loss: read from the device once per round, not per step
+                bar.set_postfix(loss=f"{hist['loss'][-1]:.4f}", planes=len(params[0]))
             n_round += 1
             t0 = time.time()
             stats = _EpochStats.zeros(len(params[0]), dev)
