@@ -259,7 +259,7 @@ def _define(wp):
         u_tab: wp.array(dtype=float), v_tab: wp.array(dtype=float), width: int, height: int, ntx: int, tile: int,
         lam: float, max_hits: int, near: float, chunk: int, n_chunks: int,
         hits: wp.array2d(dtype=wp.int64), depth: wp.array(dtype=float), alpha: wp.array(dtype=float),
-        normal: wp.array(dtype=wp.vec3),
+        normal: wp.array(dtype=wp.vec3), seen: wp.array(dtype=wp.int32),
     ):
         tid = wp.tid()
         tt = tile * tile
@@ -335,6 +335,7 @@ def _define(wp):
         for jj in range(max_hits):
             if jj < used:
                 hits[p, jj] = wp.int64(lk[jj])
+                seen[lk[jj]] = 1  # every writer stores the same 1: the order of the stores does not matter
             else:
                 hits[p, jj] = wp.int64(-1)
         depth[p] = dsum
@@ -472,7 +473,8 @@ class _Raster(torch.autograd.Function):
     """Fused forward (selection + compositing) and reverse pass over camera-frame planes.
 
     Inputs c, X, Y, n (K, 3), r (K, 4) as :class:`lipmap.planes.render._Composite`'s; outputs depth (P,),
-    normal (P, 3), alpha (P,) and hits (P, M) int64 (not differentiable).
+    normal (P, 3), alpha (P,), and hits (P, M) int64 and seen (K,) int32 (1: a pixel composites the plane), not
+    differentiable.
     """
 
     @staticmethod
@@ -485,22 +487,23 @@ class _Raster(torch.autograd.Function):
         depth = torch.empty(P, dtype=torch.float32, device=dev)
         alpha = torch.empty(P, dtype=torch.float32, device=dev)
         normal = torch.empty(P, 3, dtype=torch.float32, device=dev)
+        seen = torch.zeros(len(c), dtype=torch.int32, device=dev)
         n_chunks = _n_chunks(c)
         v3 = wp.vec3
         common = [_wa(wp, start), _wa(wp, cand), _wa(wp, zmin), _wa(wp, c, v3), _wa(wp, ax, v3), _wa(wp, ay, v3),
                   _wa(wp, n, v3), _wa(wp, r, wp.vec4), _wa(wp, nc), _wa(wp, u), _wa(wp, v), width, height, ntx, tile,
                   lam, max_hits, near]
-        outs = [_wa(wp, hits), _wa(wp, depth), _wa(wp, alpha), _wa(wp, normal, v3)]
+        outs = [_wa(wp, hits), _wa(wp, depth), _wa(wp, alpha), _wa(wp, normal, v3), _wa(wp, seen)]
         tiles_per_chunk = -(-(len(start) - 1) // n_chunks)
         _launch_chunks(wp, kn["fwd"], tiles_per_chunk * tile * tile, _device(c), n_chunks,
                        lambda h: common + [h, n_chunks] + outs)
         ctx.save_for_backward(c, ax, ay, n, r, nc, u, v, hits)
         ctx.dims = dims
-        ctx.mark_non_differentiable(hits)
-        return depth, normal, alpha, hits
+        ctx.mark_non_differentiable(hits, seen)
+        return depth, normal, alpha, hits, seen
 
     @staticmethod
-    def backward(ctx, v_depth, v_normal, v_alpha, _v_hits):
+    def backward(ctx, v_depth, v_normal, v_alpha, _v_hits, _v_seen):
         c, ax, ay, n, r, nc, u, v, hits = ctx.saved_tensors
         width, height, ntx, tile, lam, max_hits, _ = ctx.dims
         kn = _kernels()
@@ -531,9 +534,9 @@ def rasterize(cam, u, v, intrinsics, width: int, height: int, lam: float, max_hi
 
     ``u`` (W,), ``v`` (H,): the pixel rays (:func:`lipmap.planes.render._pixel_axes`); ``dilate``: how far beyond
     its rectangle a plane is binned (its weight-1e-4 footprint and a margin); ``near``: the near plane's z (m).
-    Returns depth (H, W), normal
-    (H, W, 3), alpha (H, W) and hits (H W, M) int64, nearest first (depth ties: lower index first), -1 padded;
-    the first three are differentiable w.r.t. ``cam``.
+    Returns depth (H, W), normal (H, W, 3), alpha (H, W), hits (H W, M) int64, nearest first (depth ties: lower
+    index first), -1 padded, and the planes some pixel composites (K,) bool; the first three are differentiable
+    w.r.t. ``cam``.
     """
     kn = _kernels()
     wp = kn["wp"]
@@ -566,6 +569,7 @@ def rasterize(cam, u, v, intrinsics, width: int, height: int, lam: float, max_hi
         cand = pair_plane[order]
         tiles = torch.arange(ntx * nty + 1, device=dev, dtype=torch.int64) << 32
         start = torch.searchsorted(keys, tiles).to(torch.int32)
-    depth, normal, alpha, hits = _Raster.apply(c, ax, ay, n, r, nc, u, v, start, cand, zmin,
-                                               (width, height, ntx, tile_size, float(lam), max_hits, float(near)))
-    return depth.reshape(height, width), normal.reshape(height, width, 3), alpha.reshape(height, width), hits
+    depth, normal, alpha, hits, seen = _Raster.apply(c, ax, ay, n, r, nc, u, v, start, cand, zmin,
+                                                     (width, height, ntx, tile_size, float(lam), max_hits, float(near)))
+    return (depth.reshape(height, width), normal.reshape(height, width, 3), alpha.reshape(height, width), hits,
+            seen.bool())

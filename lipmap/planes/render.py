@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import torch
@@ -84,6 +85,7 @@ class RenderOutput:
     normal: torch.Tensor
     alpha: torch.Tensor
     hits: torch.Tensor
+    visible: Optional[torch.Tensor] = None  # (K,) bool, when the renderer marked the planes it composited
 
     @property
     def n_pairs(self) -> int:
@@ -91,6 +93,8 @@ class RenderOutput:
 
     def visible_planes(self, n_planes: int) -> torch.Tensor:
         """:math:`(K,)` bool: planes that contribute to at least one pixel."""
+        if self.visible is not None and len(self.visible) == n_planes:
+            return self.visible
         # scatter into a spare slot K for the -1 padding: no boolean indexing, no host sync
         seen = torch.zeros(n_planes + 1, dtype=torch.bool, device=self.hits.device)
         h = self.hits.reshape(-1)
@@ -622,9 +626,9 @@ def rasterize_planes(
         from . import raster_warp
 
         u, v = _pixel_axes(width, height, intrinsics, center.dtype, center.device)
-        depth, normal, alpha, hits = raster_warp.rasterize(cam, u, v, intrinsics, width, height, lam, max_hits,
-                                                           tile_size, BIN_SLACK * SPLAT_MARGIN / lam, near)
-        return RenderOutput(depth, normal, alpha, hits.reshape(height, width, max_hits))
+        depth, normal, alpha, hits, seen = raster_warp.rasterize(cam, u, v, intrinsics, width, height, lam, max_hits,
+                                                                 tile_size, BIN_SLACK * SPLAT_MARGIN / lam, near)
+        return RenderOutput(depth, normal, alpha, hits.reshape(height, width, max_hits), seen)
     tab = _plane_table(*cam)
     P = width * height
     t_w = [torch.zeros(P, max_hits, dtype=center.dtype, device=center.device) for _ in range(2)]
