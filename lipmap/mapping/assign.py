@@ -201,6 +201,40 @@ def best_edges(corners: np.ndarray, plane_idx: np.ndarray, lines2d: np.ndarray, 
     return edge, a, dmax, chosen
 
 
+def best_edges_torch(corners, plane_idx, lines2d, cam_from_world, camera, dist_reduce: str = "max"):
+    """:func:`best_edges` on the training device: the same steps on tensors (its device twin; float64 in, float64
+    out, so both pick the same edge), for every row at once with no data-dependent shape.
+
+    Args:
+        corners: :math:`(K, 4, 3)` tensor (no grad needed); plane_idx: :math:`(P,)` long (>= 0); lines2d:
+            :math:`(P, 4)` tensor; cam_from_world: :math:`(4, 4)` tensor.
+
+    Returns:
+        **edge_idx** :math:`(P,)` long, **angle** and **dist** :math:`(P,)` (inf where the edge does not project).
+    """
+    import torch
+
+    P = len(plane_idx)
+    ev = torch.as_tensor(EDGE_VERTS, device=corners.device)
+    edges = corners.detach()[plane_idx][:, ev]  # (P, 4, 2, 3)
+    proj, valid = geo.project_segments(edges.reshape(-1, 2, 3), cam_from_world, camera)
+    proj = proj.reshape(P, 4, 2, 2)
+    valid = valid.reshape(P, 4)
+    det = lines2d.reshape(P, 1, 2, 2).to(proj.dtype)
+    inf = torch.tensor(float("inf"), dtype=proj.dtype, device=proj.device)
+    ang = geo.angle_distance(proj, det)
+    dmean = geo.perpendicular_distance(proj, det, reduce="mean")
+    ang = torch.where(valid & torch.isfinite(ang), ang, inf)
+    dmean = torch.where(valid & torch.isfinite(dmean), dmean, inf)
+    two = torch.sort(ang, dim=1, stable=True).indices[:, :2]
+    d_two = torch.gather(dmean, 1, two)
+    edge = torch.gather(two, 1, torch.argmin(d_two, dim=1, keepdim=True))[:, 0]
+    chosen = torch.gather(proj, 1, edge[:, None, None, None].expand(-1, 1, 2, 2))[:, 0]
+    a = geo.angle_distance(chosen, det[:, 0])
+    dmax = geo.perpendicular_distance(chosen, det[:, 0], reduce=dist_reduce)
+    return edge, torch.where(torch.isfinite(a), a, inf), torch.where(torch.isfinite(dmax), dmax, inf)
+
+
 def assign_lines(raycaster: PlaneRaycaster, corners, lines2d, cam_from_world, camera, pixels=None, line_idx=None,
                  dist_reduce: str = "max"):
     """Assign detected lines to plane edges through the pixels of their 1-pixel regions.

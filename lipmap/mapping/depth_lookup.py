@@ -35,3 +35,13 @@ def nearest_depth_residual(depth: np.ndarray, row: np.ndarray, col: np.ndarray, 
     d = depth.reshape(-1)[window]
     res = np.where(d > 0, np.abs(d - np.asarray(z)[:, None]), np.inf)
     return res.min(1) if len(res) else np.full(0, np.inf)
+
+
+def nearest_depth_residual_torch(depth, z, window):
+    """:func:`nearest_depth_residual` on tensors (the line term's device twin): ``depth`` :math:`(H, W)`, ``z``
+    :math:`(N,)`, ``window`` :math:`(N, 9)` long. Compared in ``z``'s dtype."""
+    import torch
+
+    d = depth.reshape(-1)[window].to(z.dtype)
+    res = torch.where(d > 0, (d - z[:, None]).abs(), torch.full_like(d, float("inf")))
+    return res.amin(1) if len(res) else torch.full((0,), float("inf"), dtype=z.dtype, device=z.device)

@@ -82,7 +82,7 @@ def robust_px(d: torch.Tensor, scale: float) -> torch.Tensor:
 
 def line_loss(corners, plane_idx, edge_idx, det, line_idx, cam_from_world, camera, use_group: bool = False,
               group_weight: float = 1.0, endpoint_weight: float = 0.5, robust_scale: float = 0.0,
-              euc_inside_only: bool = False):
+              euc_inside_only: bool = False, mask=None):
     """Mean over assignments of ``endpoint_weight`` * D_euc + max endpoint-to-line distance (0.5: the
     reference code's form), plus the optional group loss (metres, weighted by ``group_weight``).
 
@@ -98,6 +98,8 @@ def line_loss(corners, plane_idx, edge_idx, det, line_idx, cam_from_world, camer
     Args:
         corners: :math:`(K, 4, 3)` plane corners with grad; plane_idx/edge_idx/line_idx: :math:`(P,)`;
         det: :math:`(P, 4)` detected segments in pixels of ``camera``.
+        mask: :math:`(P,)` bool tensor, the assignments that count (None: all); the means run over these, with
+            no data-dependent shape and no host sync (0 when none counts). The group loss indexes its pairs.
     """
     if len(plane_idx) == 0:
         return corners.sum() * 0
@@ -108,17 +110,26 @@ def line_loss(corners, plane_idx, edge_idx, det, line_idx, cam_from_world, camer
     proj, _ = geo.project_segments(edges, T, camera)
     proj = torch.where(valid[:, None, None], proj, det.reshape(-1, 2, 2))
     ort_max = geo.perpendicular_distance(proj, det.reshape(-1, 2, 2), reduce="max")
-    if not bool(valid.any()):
-        loss = corners.sum() * 0
-    elif euc_inside_only and robust_scale <= 0:
-        n_inside = inside[valid].sum()
-        euc_mean = euc[valid].sum() / n_inside.clamp(min=1) * 2  # per assignment, as endpoint_weight expects
-        loss = endpoint_weight * euc_mean + ort_max[valid].mean()
+    if mask is not None:
+        valid = valid & torch.as_tensor(mask, device=valid.device)
+    n_valid = valid.sum().clamp(min=1).to(corners.dtype)
+
+    def total(x):  # the sum over the valid assignments (finite values elsewhere are masked, not indexed)
+        return torch.where(valid.reshape(-1, *([1] * (x.dim() - 1))), x, 0.0).sum()
+
+    if euc_inside_only and robust_scale <= 0:
+        n_inside = total(inside).clamp(min=1)
+        euc_mean = total(euc) / n_inside * 2  # per assignment, as endpoint_weight expects
+        loss = endpoint_weight * euc_mean + total(ort_max) / n_valid
     else:
         per = endpoint_weight * euc + ort_max
         if robust_scale > 0:
             per = robust_px(per, robust_scale)
-        loss = per[valid].mean()
+        loss = total(per) / n_valid
     if use_group:
-        loss = loss + group_weight * group_loss(edges, line_idx)
+        li = torch.as_tensor(line_idx, device=edges.device)
+        if mask is not None:
+            m = torch.as_tensor(mask, device=edges.device)
+            edges, li = edges[m], li[m]
+        loss = loss + group_weight * group_loss(edges, li)
     return loss

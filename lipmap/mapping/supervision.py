@@ -6,14 +6,17 @@ that explains the line (no gradient), and returns the line loss of those edges (
 """
 from __future__ import annotations
 
+import functools
+from dataclasses import dataclass
+from typing import Optional
+
 import numpy as np
 import torch
 
 from ..frames import DEFAULT_CAPACITY, LRU
 from ..planes.primitives import TRANSMITTANCE_EPS
-from .assign import (best_edges, first_hit, first_hit_in_render, line_regions, pixel_rays_camera,
-                     pixel_rays_world)
-from .depth_lookup import depth_window, nearest_depth_residual
+from .assign import best_edges_torch, first_hit, first_hit_in_render, line_regions, pixel_rays_camera, pixel_rays_world
+from .depth_lookup import depth_window, nearest_depth_residual_torch
 from .losses import line_loss
 
 
@@ -58,8 +61,11 @@ class LineSupervision:
         self.depth_gate = depth_gate
         self.hard_first_hit = hard_first_hit
         self._regions = LRU(self._make_regions, DEFAULT_CAPACITY)  # bounded: scenes have thousands of views
-        self._gate_geometry = LRU(self._make_gate_geometry, DEFAULT_CAPACITY)
-        self.last = {}
+        self._geometry = LRU(self._make_view_geometry, DEFAULT_CAPACITY)
+        self._last = None
+        # rows of the edge choice and the loss: the kept pairs only (reads the mask: a host sync) or every candidate
+        # row with its mask (none); None: compacted on a CPU, masked on a GPU. The same loss up to float rounding
+        self.compact_rows: Optional[bool] = None
 
     def regions(self, view, camera):
         """Region pixels :math:`(P, 2)` (col, row) and their line :math:`(P,)` of ``view``'s lines on the grid of
@@ -71,11 +77,26 @@ class LineSupervision:
         name, full_w, full_h, width, height = key
         return line_regions(self.lines[name] * _axis_scale(full_w, full_h, width, height), width, height)
 
-    def _make_gate_geometry(self, key):
-        # the gate's per-pixel constants: each region pixel's ray at z = 1 and its 3x3 depth window
-        name, full_w, full_h, width, height, camera = key
-        pix, _ = self._regions(key[:5])
-        return pixel_rays_camera(pix, camera), depth_window(pix[:, 1], pix[:, 0], (height, width))
+    def _make_view_geometry(self, key):
+        # what stays put for a view at one training resolution, on the training device: its lines, the region
+        # pixels and their lines, each region pixel's world ray (first hits), its camera ray at z = 1 and its 3x3
+        # depth window (the gate)
+        name, full_w, full_h, width, height, camera, cam_from_world, device = key
+        pix, li = self._regions(key[:5])
+        T = np.frombuffer(cam_from_world, dtype=np.float64).reshape(4, 4).copy()
+        o, d = pixel_rays_world(pix, T, camera)
+        dev = torch.device(device)
+        lines_s = self.lines[name] * _axis_scale(full_w, full_h, width, height)
+        return _ViewGeometry(
+            pix=pix, li=torch.as_tensor(li, dtype=torch.long, device=dev),
+            lines=torch.as_tensor(lines_s, dtype=torch.float64, device=dev),
+            origin=torch.as_tensor(o, dtype=torch.float32, device=dev),
+            dirs=torch.as_tensor(d, dtype=torch.float32, device=dev),
+            ray_cam=torch.as_tensor(pixel_rays_camera(pix, camera), dtype=torch.float64, device=dev),
+            window=torch.as_tensor(depth_window(pix[:, 1], pix[:, 0], (height, width)), dtype=torch.long, device=dev),
+            rows=torch.as_tensor(pix[:, 1], dtype=torch.long, device=dev),
+            cols=torch.as_tensor(pix[:, 0], dtype=torch.long, device=dev),
+            T=torch.as_tensor(T, dtype=torch.float64, device=dev))
 
     def settings(self) -> dict:
         """What shapes the loss, for the planes' artifact stamp."""
@@ -85,122 +106,151 @@ class LineSupervision:
                 "euc_inside_only": self.euc_inside_only, "depth_gate": self.depth_gate,
                 "hard_first_hit": self.hard_first_hit}
 
+    @property
+    def last(self) -> dict:
+        """The last call's assignments: ``n_assign``, ``loss`` and the assigned ``planes`` (numpy); read from the
+        device only when asked for."""
+        if self._last is None:
+            return {}
+        ok, plane, loss = self._last
+        return {"n_assign": int(ok.sum()), "loss": float(loss), "planes": plane[ok].cpu().numpy()}
+
     def __call__(self, view, planes, iteration: int, render=None, target=None):
         """Line loss of ``view`` at the training resolution: that of ``target`` (the view's
         :class:`~lipmap.planes.optimize.ViewTarget`, whose camera ``render`` was made with and whose sensor depth the
-        gate reads); the view's own camera without one."""
+        gate reads); the view's own camera without one.
+
+        Everything per iteration runs on the planes' device; on a GPU on fixed-size rows with masks, so that nothing
+        waits for the device (on a CPU the rows are compacted to the pairs kept, which costs nothing there)."""
         camera = view.camera if target is None else target.camera
         if render is not None and tuple(render.hits.shape[:2]) != (camera.height, camera.width):
             raise ValueError(f"{view.name}: the render is {tuple(render.hits.shape[:2])} pixels, the training camera "
                              f"{(camera.height, camera.width)}: pass the view's training target with its render")
+        self._last = None
         lines = self.lines.get(view.name)
         corners = planes.corners()
         zero = corners.sum() * 0
         if lines is None or len(lines) == 0 or len(planes) == 0:
             return zero
-        scale = _axis_scale(view.camera.width, view.camera.height, camera.width, camera.height)
-        lines_s = lines * scale  # exact in COLMAP's pixel convention
-        pix, li = self.regions(view, camera)
-        if len(pix) == 0:
+        if target is not None and self.depth_gate > 0 and tuple(target.depth.shape) != (camera.height, camera.width):
+            raise ValueError(f"{view.name}: the sensor depth is {tuple(target.depth.shape)}, the training grid "
+                             f"{(camera.height, camera.width)}")
+        g = self._geometry((view.name, view.camera.width, view.camera.height, camera.width, camera.height, camera,
+                            np.asarray(view.cam_from_world, dtype=np.float64).tobytes(), str(corners.device)))
+        if len(g.li) == 0:
             return zero
         if self.pixels_per_line == 0:
             # every region pixel; each (line, first-hit plane) pair once
-            k_all = self._first_hits(pix, corners, view, camera, render)
-            # (line, plane) pairs through one integer key: np.unique over rows is ~5x slower, same order
-            n_k = len(planes) + 1
-            keys, inv = np.unique(li.astype(np.int64) * n_k + (k_all + 1), return_inverse=True)
-            pairs = np.stack([keys // n_k, keys % n_k - 1], 1)
-            keep = pairs[:, 1] >= 0
-            ok_pix = self._depth_ok(None, k_all, corners, view, camera, target)
-            if ok_pix is not None:  # a pair stays when one of its pixels agrees, or none has sensor depth
-                agree, known = np.zeros(len(pairs), bool), np.zeros(len(pairs), bool)
-                np.logical_or.at(agree, inv.ravel(), ok_pix == 1)
-                np.logical_or.at(known, inv.ravel(), ok_pix >= 0)
-                keep &= agree | ~known
-            pairs = pairs[keep]
-            li = pairs[:, 0]
-            k = torch.as_tensor(pairs[:, 1])
+            k_all = self._first_hits(g, corners, render)
+            ok_pix = self._depth_ok(g, None, k_all, corners, target)
+            rows, keep = _first_of_each_pair(g.li, k_all, len(planes), ok_pix)
+            li, plane = g.li[rows], k_all[rows]
         else:
             rng = np.random.default_rng([self.seed, iteration])
-            # sample k pixels per line: random keys, then the first k of each line after sorting
-            order = np.lexsort((rng.random(len(li)), li))
-            li_sorted = li[order]
+            # sample k pixels per line: random keys, then the first k of each line after sorting (on the host: the
+            # region's line ids are constants of the view, no device data is read)
+            li_np = g.li_host
+            order = np.lexsort((rng.random(len(li_np)), li_np))
+            li_sorted = li_np[order]
             rank = np.arange(len(li_sorted)) - np.searchsorted(li_sorted, li_sorted)
-            take = order[rank < self.pixels_per_line]
-            pix, li = pix[take], li[take]
-            o, d = pixel_rays_world(pix, view.cam_from_world, camera)
-            k = first_hit(corners, torch.as_tensor(o, dtype=corners.dtype, device=corners.device),
-                          torch.as_tensor(d, dtype=corners.dtype, device=corners.device))
-            ok_pix = self._depth_ok(take, k.cpu().numpy(), corners, view, camera, target)
-            if ok_pix is not None:
-                k = torch.where(torch.as_tensor(ok_pix != 0, device=k.device), k, torch.full_like(k, -1))
-        hit = (k >= 0).cpu().numpy()
-        if not hit.any():
-            return zero
-        plane = k.cpu().numpy()[hit]
-        li = li[hit]
-        edge, ang, dist, _ = best_edges(corners.detach().cpu().numpy().astype(np.float64), plane, lines_s[li],
-                                        view.cam_from_world, camera)
-        ok = np.isfinite(dist)
+            take = torch.as_tensor(order[rank < self.pixels_per_line], dtype=torch.long, device=corners.device)
+            plane = first_hit(corners, g.origin[take].to(corners.dtype), g.dirs[take].to(corners.dtype))
+            ok_pix = self._depth_ok(g, take, plane, corners, target)
+            keep = plane >= 0 if ok_pix is None else (plane >= 0) & (ok_pix != 0)
+            li = g.li[take]
+        if self.compact_rows if self.compact_rows is not None else corners.device.type == "cpu":
+            # a CPU reads the mask for free: the rows shrink to the kept pairs (~1 in 6 of the region pixels), where
+            # a GPU keeps every row and its mask rather than wait for the count
+            sel = keep.nonzero().squeeze(1)
+            li, plane, keep = li[sel], plane[sel], keep[sel]
+        plane_c = plane.clamp(min=0)
+        det = g.lines[li]
+        edge, _, dist = best_edges_torch(corners.detach().to(torch.float64), plane_c, det, g.T, camera)
+        ok = keep & torch.isfinite(dist)
         if self.max_assign_frac > 0:  # an edge hopelessly far is another surface's: skip the assignment
-            ok &= dist < self.max_assign_frac * max(camera.width, camera.height)
-        if not ok.any():
-            return zero
-        s = scale[0]  # training pixels per full-resolution pixel (x and y differ by the rounding of one row)
-        loss = line_loss(corners, plane[ok], edge[ok], lines_s[li[ok]], li[ok], view.cam_from_world, camera,
+            ok = ok & (dist < self.max_assign_frac * max(camera.width, camera.height))
+        s = float(_axis_scale(view.camera.width, view.camera.height, camera.width, camera.height)[0])
+        # s: training pixels per full-resolution pixel (x and y differ by the rounding of one row)
+        loss = line_loss(corners, plane_c, edge, det.to(corners.dtype), li, g.T.to(corners.dtype), camera,
                          use_group=self.use_group, group_weight=self.group_weight,
                          endpoint_weight=self.endpoint_weight, robust_scale=self.robust_scale * s,
-                         euc_inside_only=self.euc_inside_only)
-        self.last = {"n_assign": int(ok.sum()), "loss": float(loss.detach()), "planes": plane[ok]}
+                         euc_inside_only=self.euc_inside_only, mask=ok)
+        self._last = (ok, plane, loss.detach())
         # distances are in training-resolution pixels; express them in full-resolution pixels so the
         # balance with the plane loss does not change with the training scale
         return self.weight * loss / s
 
-    def _first_hits(self, pix, corners, view, camera, render):
-        """The first plane (-1: none) each region pixel's ray meets: :math:`(P,)` int64 numpy."""
-        rows, cols = torch.as_tensor(pix[:, 1]), torch.as_tensor(pix[:, 0])
+    def _first_hits(self, g, corners, render):
+        """The first plane (-1: none) each region pixel's ray meets: :math:`(P,)` long, on the planes' device."""
         if render is not None and not self.hard_first_hit:
-            return render.hits[rows, cols, 0].cpu().numpy()
-        o, d = pixel_rays_world(pix, view.cam_from_world, camera)
-        o = torch.as_tensor(o, dtype=corners.dtype, device=corners.device)
-        d = torch.as_tensor(d, dtype=corners.dtype, device=corners.device)
+            return render.hits[g.rows, g.cols, 0].to(corners.device)
+        o, d = g.origin.to(corners.dtype), g.dirs.to(corners.dtype)
         if render is None:
-            return first_hit(corners, o, d).cpu().numpy()
-        cand = render.hits[rows, cols].to(corners.device)
+            return first_hit(corners, o, d)
+        cand = render.hits[g.rows, g.cols].to(corners.device)
         # a list is whole unless it is full or the transmittance behind it ran out
-        complete = (cand[:, -1] < 0) & (render.alpha.detach()[rows, cols].to(corners.device) < 1 - TRANSMITTANCE_EPS)
-        return first_hit_in_render(corners, cand, o, d, complete).cpu().numpy()
+        complete = (cand[:, -1] < 0) & (render.alpha.detach()[g.rows, g.cols].to(corners.device) < 1 - TRANSMITTANCE_EPS)
+        return first_hit_in_render(corners, cand, o, d, complete)
 
-    def _depth_ok(self, take, plane, corners, view, camera, target):
+    def _depth_ok(self, g, take, plane, corners, target):
         """Per region pixel (those indexed by ``take``; all with None): 1 where the plane ``plane`` it meets first
         lies within ``depth_gate`` of the sensor depth at one of the 3x3 pixels around it (an edge lies on a depth
         step, and a 1-pixel region straddles it), 0 where it does not, -1 where there is no sensor depth there (or
-        no plane); None when the gate is off."""
+        no plane); None when the gate is off. :math:`(P,)` int8 on the planes' device."""
         if not self.depth_gate > 0 or target is None:
             return None
-        depth = target.depth.cpu().numpy()
-        if depth.shape != (camera.height, camera.width):
-            raise ValueError(f"{view.name}: the sensor depth is {depth.shape}, the training grid {(camera.height, camera.width)}")
-        ray, window = self._gate_geometry((view.name, view.camera.width, view.camera.height, camera.width,
-                                           camera.height, camera))
-        if take is not None:
-            ray, window = ray[take], window[take]
-        out = np.full(len(plane), -1, dtype=np.int8)
-        m = plane >= 0
-        if not m.any():
-            return out
-        # each plane's normal and offset once, in the camera frame; then the depth of every ray's hit
-        u, inv = np.unique(plane[m], return_inverse=True)
-        c = corners.detach()[torch.as_tensor(u)].cpu().numpy().astype(np.float64)  # (U, 4, 3)
-        R, t = view.cam_from_world[:3, :3], view.cam_from_world[:3, 3]
+        ray, window = (g.ray_cam, g.window) if take is None else (g.ray_cam[take], g.window[take])
+        # each pixel's plane's normal and offset in the camera frame, then the depth of its ray's hit (float64)
+        c = corners.detach()[plane.clamp(min=0)].to(torch.float64)  # (P, 4, 3)
+        R, t = g.T[:3, :3], g.T[:3, 3]
         c_cam = c @ R.T + t
-        n = np.cross(c_cam[:, 1] - c_cam[:, 0], c_cam[:, 3] - c_cam[:, 0])
-        offset = (n * c_cam[:, 0]).sum(1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = offset[inv] / (n[inv] * ray[m]).sum(1)  # ray at z = 1: the hit's parameter is its depth
-        best = nearest_depth_residual(depth, None, None, z, window=window[m])
-        out[m] = np.where(np.isfinite(best), best <= self.depth_gate, -1)
-        return out
+        n = torch.linalg.cross(c_cam[:, 1] - c_cam[:, 0], c_cam[:, 3] - c_cam[:, 0])
+        z = (n * c_cam[:, 0]).sum(1) / (n * ray).sum(1)  # ray at z = 1: the hit's parameter is its depth
+        best = nearest_depth_residual_torch(target.depth.to(corners.device), z, window)
+        out = torch.where(best <= self.depth_gate, 1, 0).to(torch.int8)
+        return torch.where((plane >= 0) & torch.isfinite(best), out, torch.full_like(out, -1))
+
+
+@dataclass
+class _ViewGeometry:
+    """A view's line-term constants at one training resolution (see ``LineSupervision._make_view_geometry``)."""
+
+    pix: np.ndarray  # (P, 2) region pixels (col, row)
+    li: torch.Tensor  # (P,) long, each pixel's line
+    lines: torch.Tensor  # (N, 4) float64, the lines at the training resolution
+    origin: torch.Tensor  # (P, 3) float32 world ray origins
+    dirs: torch.Tensor  # (P, 3) float32 unit world ray directions
+    ray_cam: torch.Tensor  # (P, 3) float64 camera rays at z = 1
+    window: torch.Tensor  # (P, 9) long, flat indices of the 3x3 pixels around each
+    rows: torch.Tensor  # (P,) long
+    cols: torch.Tensor  # (P,) long
+    T: torch.Tensor  # (4, 4) float64 cam_from_world
+
+    @functools.cached_property
+    def li_host(self) -> np.ndarray:
+        return self.li.cpu().numpy()
+
+
+def _first_of_each_pair(li: torch.Tensor, plane: torch.Tensor, n_planes: int, ok_pix: Optional[torch.Tensor]):
+    """Each (line, plane) pair of the region pixels once, on the device with fixed-size rows.
+
+    Returns ``rows`` :math:`(P,)`, the pixels in (line, plane) order, and ``keep`` :math:`(P,)` bool: True at the
+    first pixel of each pair whose plane is not -1 and, with ``ok_pix`` (the depth gate), where one of the pair's
+    pixels agrees with the sensor depth or none has sensor depth.
+    """
+    key = li * (n_planes + 1) + (plane + 1)  # one integer per (line, plane)
+    skey, rows = torch.sort(key, stable=True)
+    first = torch.ones_like(skey, dtype=torch.bool)
+    first[1:] = skey[1:] != skey[:-1]
+    keep = first & (plane[rows] >= 0)
+    if ok_pix is not None:
+        gid = torch.cumsum(first, 0) - 1  # the pair of each sorted pixel
+        okp = ok_pix[rows]
+        agree = torch.zeros(len(rows), dtype=torch.int32, device=li.device).scatter_reduce(
+            0, gid, (okp == 1).to(torch.int32), "amax")
+        known = torch.zeros_like(agree).scatter_reduce(0, gid, (okp >= 0).to(torch.int32), "amax")
+        keep &= (agree[gid] > 0) | (known[gid] == 0)
+    return rows, keep
 
 
 def _axis_scale(full_w: int, full_h: int, width: int, height: int) -> np.ndarray:
