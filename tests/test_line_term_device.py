@@ -97,3 +97,33 @@ def test_a_line_term_call_never_waits_for_the_device(preset):
     assert got[False][1] == got[True][1]
     assert got[False][0] == pytest.approx(got[True][0], rel=1e-5)
     torch.testing.assert_close(got[False][2], got[True][2], rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA needed")
+def test_cuda_training_step_with_the_line_term_syncs_once():
+    """A whole ``fast`` training step on CUDA (render, plane loss, line term, backward, fused Adam, the round's sums):
+    torch's sync debug mode warns at most once (the renderer's pair count)."""
+    import warnings
+
+    from lipmap.planes.optimize import Schedule, _EpochStats, _make_optimizer, _train_view
+
+    corners_true, views = panel_scene()
+    v = views[0]
+    frames = [DepthFrame(v, v.camera, v.cam_from_world, raycast_depth(corners_true, v))]
+    conf = PlaneOptConfig.preset("fast-lines", downscale=1, progress=False)
+    tgt = prepare_targets(frames, conf, device="cuda")[0]
+    params = [t.cuda().requires_grad_() for t in _planes(corners_true + np.array([0.01, -0.005, 0.0])).tensors()]
+    sup = line_supervision({v.name: detected(corners_true, v)}, get_conf("fast"))
+    opt, sched = _make_optimizer(params, conf), Schedule.of(conf, 1)
+    stats = _EpochStats.zeros(len(params[0]), "cuda")
+    _train_view(params, opt, tgt, 0, sched, sup, stats)  # kernels, cached geometry
+    torch.cuda.synchronize()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            _train_view(params, opt, tgt, 1, sched, sup, stats)
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    assert sum("synchroniz" in str(w.message) for w in caught) <= 1, [str(w.message) for w in caught]
+    assert stats.means()["skipped"] == 0 and sup.last["n_assign"] > 0
