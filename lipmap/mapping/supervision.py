@@ -15,7 +15,7 @@ import torch
 
 from ..frames import DEFAULT_CAPACITY, LRU
 from ..planes.primitives import TRANSMITTANCE_EPS
-from .assign import best_edges_torch, first_hit, first_hit_in_render, line_regions, pixel_rays_camera, pixel_rays_world
+from .assign import best_edges_torch, first_hit, first_hit_in_render, line_regions, pixel_rays_world
 from .depth_lookup import depth_window, nearest_depth_residual_torch
 from .losses import line_loss
 
@@ -79,8 +79,7 @@ class LineSupervision:
 
     def _make_view_geometry(self, key):
         # what stays put for a view at one training resolution, on the training device: its lines, the region
-        # pixels and their lines, each region pixel's world ray (first hits), its camera ray at z = 1 and its 3x3
-        # depth window (the gate)
+        # pixels' lines, world rays (first hits) and 3x3 depth windows (the gate; the centre is the pixel)
         name, full_w, full_h, width, height, camera, cam_from_world, device = key
         pix, li = self._regions(key[:5])
         T = np.frombuffer(cam_from_world, dtype=np.float64).reshape(4, 4).copy()
@@ -88,15 +87,12 @@ class LineSupervision:
         dev = torch.device(device)
         lines_s = self.lines[name] * _axis_scale(full_w, full_h, width, height)
         return _ViewGeometry(
-            pix=pix, li=torch.as_tensor(li, dtype=torch.long, device=dev),
+            li=torch.as_tensor(li, dtype=torch.long, device=dev),
             lines=torch.as_tensor(lines_s, dtype=torch.float64, device=dev),
-            origin=torch.as_tensor(o, dtype=torch.float32, device=dev),
+            origin=torch.as_tensor(o[0] if len(o) else np.zeros(3), dtype=torch.float32, device=dev),
             dirs=torch.as_tensor(d, dtype=torch.float32, device=dev),
-            ray_cam=torch.as_tensor(pixel_rays_camera(pix, camera), dtype=torch.float64, device=dev),
-            window=torch.as_tensor(depth_window(pix[:, 1], pix[:, 0], (height, width)), dtype=torch.long, device=dev),
-            rows=torch.as_tensor(pix[:, 1], dtype=torch.long, device=dev),
-            cols=torch.as_tensor(pix[:, 0], dtype=torch.long, device=dev),
-            T=torch.as_tensor(T, dtype=torch.float64, device=dev))
+            window=torch.as_tensor(depth_window(pix[:, 1], pix[:, 0], (height, width)), dtype=torch.int32, device=dev),
+            T=torch.as_tensor(T, dtype=torch.float64, device=dev), width=width, camera=camera)
 
     def settings(self) -> dict:
         """What shapes the loss, for the planes' artifact stamp."""
@@ -154,7 +150,8 @@ class LineSupervision:
             li_sorted = li_np[order]
             rank = np.arange(len(li_sorted)) - np.searchsorted(li_sorted, li_sorted)
             take = torch.as_tensor(order[rank < self.pixels_per_line], dtype=torch.long, device=corners.device)
-            plane = first_hit(corners, g.origin[take].to(corners.dtype), g.dirs[take].to(corners.dtype))
+            plane = first_hit(corners, g.origin.to(corners.dtype).expand(len(take), 3).contiguous(),
+                              g.dirs[take].to(corners.dtype))
             ok_pix = self._depth_ok(g, take, plane, corners, target)
             keep = plane >= 0 if ok_pix is None else (plane >= 0) & (ok_pix != 0)
             li = g.li[take]
@@ -182,15 +179,17 @@ class LineSupervision:
 
     def _first_hits(self, g, corners, render):
         """The first plane (-1: none) each region pixel's ray meets: :math:`(P,)` long, on the planes' device."""
+        flat = g.pixel
         if render is not None and not self.hard_first_hit:
-            return render.hits[g.rows, g.cols, 0].to(corners.device)
-        o, d = g.origin.to(corners.dtype), g.dirs.to(corners.dtype)
+            return render.hits.reshape(-1, render.hits.shape[-1])[flat, 0].to(corners.device)
+        d = g.dirs.to(corners.dtype)
+        o = g.origin.to(corners.dtype).expand(len(d), 3).contiguous()
         if render is None:
             return first_hit(corners, o, d)
-        cand = render.hits[g.rows, g.cols].to(corners.device)
+        cand = render.hits.reshape(-1, render.hits.shape[-1])[flat].to(corners.device)
         # a list is whole unless it is full or the transmittance behind it ran out
-        complete = (cand[:, -1] < 0) & (render.alpha.detach()[g.rows, g.cols].to(corners.device) < 1 - TRANSMITTANCE_EPS)
-        return first_hit_in_render(corners, cand, o, d, complete)
+        alpha = render.alpha.detach().reshape(-1)[flat].to(corners.device)
+        return first_hit_in_render(corners, cand, o, d, (cand[:, -1] < 0) & (alpha < 1 - TRANSMITTANCE_EPS))
 
     def _depth_ok(self, g, take, plane, corners, target):
         """Per region pixel (those indexed by ``take``; all with None): 1 where the plane ``plane`` it meets first
@@ -199,7 +198,8 @@ class LineSupervision:
         no plane); None when the gate is off. :math:`(P,)` int8 on the planes' device."""
         if not self.depth_gate > 0 or target is None:
             return None
-        ray, window = (g.ray_cam, g.window) if take is None else (g.ray_cam[take], g.window[take])
+        window = g.window if take is None else g.window[take]
+        ray = g.ray_cam(window[:, 4])
         # each pixel's plane's normal and offset in the camera frame, then the depth of its ray's hit (float64)
         c = corners.detach()[plane.clamp(min=0)].to(torch.float64)  # (P, 4, 3)
         R, t = g.T[:3, :3], g.T[:3, 3]
@@ -213,18 +213,29 @@ class LineSupervision:
 
 @dataclass
 class _ViewGeometry:
-    """A view's line-term constants at one training resolution (see ``LineSupervision._make_view_geometry``)."""
+    """A view's line-term constants at one training resolution (see ``LineSupervision._make_view_geometry``); about
+    60 bytes per region pixel, held for up to ``DEFAULT_CAPACITY`` views."""
 
-    pix: np.ndarray  # (P, 2) region pixels (col, row)
-    li: torch.Tensor  # (P,) long, each pixel's line
+    li: torch.Tensor  # (P,) long, each region pixel's line
     lines: torch.Tensor  # (N, 4) float64, the lines at the training resolution
-    origin: torch.Tensor  # (P, 3) float32 world ray origins
+    origin: torch.Tensor  # (3,) float32 the camera centre (every ray's origin)
     dirs: torch.Tensor  # (P, 3) float32 unit world ray directions
-    ray_cam: torch.Tensor  # (P, 3) float64 camera rays at z = 1
-    window: torch.Tensor  # (P, 9) long, flat indices of the 3x3 pixels around each
-    rows: torch.Tensor  # (P,) long
-    cols: torch.Tensor  # (P,) long
+    window: torch.Tensor  # (P, 9) int32, flat indices of the 3x3 pixels around each (the pixel itself at 4)
     T: torch.Tensor  # (4, 4) float64 cam_from_world
+    width: int
+    camera: object
+
+    @property
+    def pixel(self) -> torch.Tensor:
+        """(P,) long flat index of each region pixel."""
+        return self.window[:, 4].long()
+
+    def ray_cam(self, flat: torch.Tensor) -> torch.Tensor:
+        """(P, 3) float64 camera rays at z = 1 through the pixels ``flat`` (:func:`pixel_rays_camera`'s arithmetic)."""
+        col, row = (flat % self.width).double(), torch.div(flat, self.width, rounding_mode="floor").double()
+        cam = self.camera
+        x, y = (col + 0.5 - cam.cx) / cam.fx, (row + 0.5 - cam.cy) / cam.fy
+        return torch.stack([x, y, torch.ones_like(x)], -1)
 
     @functools.cached_property
     def li_host(self) -> np.ndarray:
