@@ -72,7 +72,7 @@ class MappingConfig:
 
 
 confs = {
-    # CPU line mapping: RedKitchen mini (50 views) in ~8 min on 2 cores
+    # CPU line mapping: RedKitchen mini (50 views) in ~5 min on 2 cores
     "fast": MappingConfig(),
     # tests, notebooks and demos on small scenes: 8 epochs of the plain "fast" plane preset
     "quick": MappingConfig(preset="quick", planes="fast", refine=RefineConfig(enabled=False)),
