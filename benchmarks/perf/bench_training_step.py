@@ -9,7 +9,9 @@ resolution (the planes grow from their small initial radii, kernels load), then 
 (320x240) and as many at the camera's resolution (640x480, the preset's fine phase), from the warmed planes. Parts
 come from cProfile over the timed iterations (cumulative seconds per iteration; the profiler's own overhead is in
 the total too, so compare rows with each other). The total column is timed without the profiler. Syncs: the
-operations of one iteration that would wait for a GPU (counted on the CPU, as ``tests/test_raster_fused.py`` does).
+operations of one iteration that would wait for a GPU (counted on the CPU, as ``tests/test_raster_fused.py`` does;
+on a CPU the line term compacts its rows, one of them, which it does not on a GPU). ``--tag`` names the run in the
+table's first column: run on a checkout of an older commit (with this script copied in), it gives the "before" rows.
 
 Writes ``benchmarks/results/perf-training-step-redkitchen[-TAG].json``.
 """
@@ -32,7 +34,7 @@ sys.path.insert(0, str(REPO / "tests"))
 import results  # noqa: E402
 
 DATA = (REPO / ".." / "shared" / "data" / "7scenes-redkitchen-mini").resolve()
-HEADER = ["renderer", "resolution", "ms per iteration", "render (forward)", "line term", "of it: first hits",
+HEADER = ["run", "renderer", "resolution", "ms per iteration", "render (forward)", "line term", "of it: first hits",
           "backward + Adam", "plane loss", "syncs per iteration"]
 # (column, the file and function whose cumulative time it is)
 PARTS = [("render (forward)", ("optimize.py", "render_target")), ("line term", ("supervision.py", "__call__")),
@@ -91,7 +93,8 @@ def measure(args) -> list[dict]:
         opt_mod._train_view(params, opt, targets[0], 0, sched, sup, st)
         with CountDispatch() as n:
             opt_mod._train_view(params, opt, targets[1], 1, sched, sup, st)
-        row = {"renderer": os.environ.get("LIPMAP_RENDER_BACKEND", "auto"), "resolution": label,
+        row = {"run": args.tag or "this commit", "renderer": os.environ.get("LIPMAP_RENDER_BACKEND", "auto"),
+               "resolution": label,
                "ms per iteration": round(1000 * total, 1), "syncs per iteration": n.syncs}
         for col, key in PARTS:
             row[col] = round(1000 * cum.get(key, 0.0) / args.iterations, 1)
@@ -119,7 +122,8 @@ def main():
     rows = []
     for backend in args.backends.split(","):
         cmd = [sys.executable, __file__, "--child", "--root", str(args.root), "--out", str(args.out),
-               "--iterations", str(args.iterations), "--warmup", str(args.warmup), "--threads", str(args.threads)]
+               "--iterations", str(args.iterations), "--warmup", str(args.warmup), "--threads", str(args.threads),
+               "--tag", args.tag]
         out = subprocess.run(cmd, env={**os.environ, "LIPMAP_RENDER_BACKEND": backend}, capture_output=True, text=True)
         if out.returncode:
             raise SystemExit(f"{backend}: {out.stderr[-3000:]}")
