@@ -17,14 +17,7 @@ from lipmap.testing import raycast_depth
 from test_joint_optimization import _planes, panel_scene
 from test_mapping_extract import detected
 from test_raster_fused import CountDispatch, needs_warp
-
-
-def random_planes(K, seed):
-    rng = np.random.default_rng(seed)
-    normals = rng.normal(size=(K, 3)) * [0.3, 0.3, 1.0]
-    normals[:, 2] = -np.abs(normals[:, 2])
-    return Planes.from_normals(rng.uniform([-0.6, -0.5, 1.0], [0.6, 0.5, 2.5], (K, 3)), normals,
-                               rng.uniform(0.05, 0.3, K))
+from test_raycast_fused import random_planes
 
 
 @pytest.mark.parametrize("reduce", ["max", "mean"])

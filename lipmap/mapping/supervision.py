@@ -60,8 +60,7 @@ class LineSupervision:
         self.euc_inside_only = euc_inside_only
         self.depth_gate = depth_gate
         self.hard_first_hit = hard_first_hit
-        self._regions = LRU(self._make_regions, DEFAULT_CAPACITY)  # bounded: scenes have thousands of views
-        self._geometry = LRU(self._make_view_geometry, DEFAULT_CAPACITY)
+        self._geometry = LRU(self._make_view_geometry, DEFAULT_CAPACITY)  # bounded: scenes have thousands of views
         self._last = None
         # rows of the edge choice and the loss: the kept pairs only (reads the mask: a host sync) or every candidate
         # row with its mask (none); None: compacted on a CPU, masked on a GPU. The same loss up to float rounding
@@ -71,17 +70,16 @@ class LineSupervision:
         """Region pixels :math:`(P, 2)` (col, row) and their line :math:`(P,)` of ``view``'s lines on the grid of
         ``camera`` (the training resolution): the full-resolution segments are scaled to it first, x and y each by
         its own factor (exact in COLMAP's pixel convention)."""
-        return self._regions((view.name, view.camera.width, view.camera.height, camera.width, camera.height))
+        return self._make_regions(view.name, view.camera.width, view.camera.height, camera.width, camera.height)
 
-    def _make_regions(self, key):
-        name, full_w, full_h, width, height = key
+    def _make_regions(self, name, full_w, full_h, width, height):
         return line_regions(self.lines[name] * _axis_scale(full_w, full_h, width, height), width, height)
 
     def _make_view_geometry(self, key):
         # what stays put for a view at one training resolution, on the training device: its lines, the region
         # pixels' lines, world rays (first hits) and 3x3 depth windows (the gate; the centre is the pixel)
         name, full_w, full_h, width, height, camera, cam_from_world, device = key
-        pix, li = self._regions(key[:5])
+        pix, li = self._make_regions(*key[:5])
         T = np.frombuffer(cam_from_world, dtype=np.float64).reshape(4, 4).copy()
         o, d = pixel_rays_world(pix, T, camera)
         dev = torch.device(device)
