@@ -742,7 +742,7 @@ def optimize_planes(
         for vi in rng.permutation(len(targets))[: sched.max_iters - it]:
             if it == fine_from and isinstance(targets, TargetStore):
                 targets.release()  # the coarse targets are not used again: up to cache_views of them held
-            total = _train_view(params, opt, (fine if it >= fine_from else targets)[vi], it, sched, extra_loss, stats)
+            _train_view(params, opt, (fine if it >= fine_from else targets)[vi], it, sched, extra_loss, stats)
             it += 1
             visited[vi] = True
             if bar is not None:
