@@ -31,7 +31,7 @@ from ..presets import resolve
 from .init import LazyDepthFrames, PlaneInitConfig, init_planes, resize_nearest, working_downscale
 from .io import export_planes_ply, save_planes
 from .primitives import MAX_HITS, NEAR, Planes, quat_to_rotmat
-from .render import TILE_SIZE, RenderOutput, lambda_schedule, rasterize_planes
+from .render import TILE_SIZE, RenderOutput, lambda_schedule, rasterize_planes, resolve_backend
 
 
 @dataclass
@@ -544,6 +544,17 @@ def _total_loss(pl: Optional[tuple], extra, plane_scale: float):
     return total
 
 
+def _recenter_fused(params: list) -> bool:
+    """The re-centring and quaternion normalisation as one Warp launch where the renderer runs on Warp (:meth:`Planes.
+    recentered` is its twin, at about 70 dispatched operations a step); False: not done here."""
+    c = params[0]
+    if resolve_backend(None, c.device, c.dtype, 1) != "warp":
+        return False
+    from . import raster_warp
+
+    return raster_warp.recenter_(*params)
+
+
 def _apply_step(opt: torch.optim.Adam, params: list, total: torch.Tensor, reset_moments: bool = False,
                 taken: Optional[torch.Tensor] = None):
     """Backward, Adam step, then the reference's re-centring and quaternion normalisation (and, with
@@ -569,10 +580,11 @@ def _apply_step(opt: torch.optim.Adam, params: list, total: torch.Tensor, reset_
     elif bool(taken):
         opt.step()
     with torch.no_grad():
-        rec = Planes(params[0], params[1], params[2]).recentered()
-        params[0].copy_(rec.center)
-        params[2].copy_(rec.radii)
-        params[1].div_(params[1].norm(dim=1, keepdim=True).clamp(min=1e-12))
+        if not _recenter_fused(params):
+            rec = Planes(params[0], params[1], params[2]).recentered()
+            params[0].copy_(rec.center)
+            params[2].copy_(rec.radii)
+            params[1].div_(params[1].norm(dim=1, keepdim=True).clamp(min=1e-12))
         if reset_moments:
             for p in (params[0], params[2]):
                 st = opt.state.get(p)
@@ -662,7 +674,7 @@ def _restructure(params: list, opt, stats: _EpochStats, it: int, sched: Schedule
     if len(new) == 0:
         logger.warning("pruning would remove every plane; keeping the current set")
         new, imap = prune_and_split(current, min_radius=0.0, split_threshold=None)
-    params_new = [t.clone().requires_grad_(True) for t in new.tensors()]
+    params_new = _live(new)
     return params_new, _make_optimizer(params_new, conf, old=opt, parent=imap.parent), imap
 
 
@@ -687,7 +699,13 @@ def _clean_start(planes: Planes, dev, on_restructure) -> list:
         logger.warning("dropped %d degenerate planes (non-finite or non-positive radii) before optimizing", imap.n_pruned)
     if on_restructure:
         on_restructure(imap)
-    return [t.clone().requires_grad_(True) for t in planes.tensors()]
+    return _live(planes)
+
+
+def _live(planes: Planes) -> list:
+    """The live parameters [center, quat, radii]: contiguous copies (numpy-made planes are column-major), which the
+    fused re-centring updates in place."""
+    return [t.clone(memory_format=torch.contiguous_format).requires_grad_(True) for t in planes.tensors()]
 
 
 ExtraLoss = Callable[[object, Planes, int, RenderOutput, ViewTarget], Optional[torch.Tensor]]

@@ -34,8 +34,12 @@ def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
 
     The torch twin of :func:`lipmap.poses.qvec_wxyz_to_R` (numpy, one quaternion); differentiable.
     """
-    q = q / q.norm(dim=-1, keepdim=True).clamp(min=1e-12)
     w, x, y, z = q.unbind(-1)
+    # summed left to right and rooted in float64, as the Warp renderer's per-plane setup does: torch's float32 sqrt
+    # is not correctly rounded on every CPU, and the two backends must see bit-identical planes. Clamped before the
+    # root: finite gradients at 0.
+    norm = (w * w + x * x + y * y + z * z).clamp(min=1e-24).double().sqrt().to(q.dtype)
+    w, x, y, z = w / norm, x / norm, y / norm, z / norm
     return torch.stack(
         [
             1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),

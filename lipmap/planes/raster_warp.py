@@ -12,15 +12,16 @@ The shape of gsplat's rasterizer and of the reference's ``renderCUDA``:
    and composites them front to back;
 4. one reverse program per pixel (``_raster_bwd``) accumulates the per-plane gradients.
 
-It takes the camera-frame planes from :func:`lipmap.planes.render._planes_in_camera` (torch, so the
-gradients reach centre, quaternion and radii through autograd) and computes every pair with the
-arithmetic of :func:`lipmap.planes.render._pair_terms`, transcribed in ``_pair_geo`` and ``_weight``:
-the torch backend is this module's reference twin, and the tests hold both to the same hits. Float32 only.
+Step 1 starts from the world-frame parameters: ``_setup_fwd`` moves each plane into the camera
+(:func:`lipmap.planes.render._planes_in_camera`, transcribed) and ``_setup_bwd`` carries the reverse pass's
+gradients back to centre, quaternion and radii, so a step dispatches a few dozen torch operations, not
+hundreds. Every pair is computed with the arithmetic of :func:`lipmap.planes.render._pair_terms`,
+transcribed in ``_pair_geo`` and ``_weight``: the torch backend is this module's reference twin, and the
+tests hold both to the same hits. Float32 only.
 
 Warp is imported on first use: ``import lipmap`` works without it, and ``backend="auto"`` falls back
 to torch. Kernels compile on first launch per device (a few seconds; cached on disk afterwards).
 """
-from __future__ import annotations
 
 import contextlib
 import functools
@@ -29,7 +30,7 @@ import os
 
 import torch
 
-from .primitives import NEAR, SPLAT_MARGIN, TRANSMITTANCE_EPS, WEIGHT_EPS
+from .primitives import NEAR, R_MAX, R_MIN, SPLAT_MARGIN, TRANSMITTANCE_EPS, WEIGHT_EPS
 
 MAX_HITS_CAP = 32  # the per-pixel hit list lives in registers: M <= 32 (the reference composites up to 30)
 INSTALL_HINT = "pip install warp-lang==1.19.0 (a dependency of lipmap), or pass backend='torch'"
@@ -162,6 +163,129 @@ def _define(wp):
             if not (py < -(r[3] + mg)):
                 out_ym = 0
         return out_xp + out_xm + out_yp + out_ym == 0
+
+    @wp.func
+    def _rotation(q: wp.vec4):
+        # primitives.quat_to_rotmat, operation by operation: the unit quaternion (w, x, y, z) and its matrix M
+        qn = wp.float32(wp.sqrt(wp.float64(wp.max(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3], 1.0e-24))))
+        w, x, y, z = q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn
+        M = wp.mat33(
+            1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+            2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+            2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))
+        return qn, wp.vec4(w, x, y, z), M
+
+    @wp.func
+    def _row_dot(T: wp.array(dtype=float), i: int, a: float, b: float, d: float):
+        return T[4 * i] * a + T[4 * i + 1] * b + T[4 * i + 2] * d
+
+    @wp.func
+    def _to_camera(T: wp.array(dtype=float), center: wp.vec3, M: wp.mat33):
+        # render._planes_in_camera, operation by operation: c = R centre + t and the columns of R M
+        c = wp.vec3(_row_dot(T, 0, center[0], center[1], center[2]) + T[3],
+                    _row_dot(T, 1, center[0], center[1], center[2]) + T[7],
+                    _row_dot(T, 2, center[0], center[1], center[2]) + T[11])
+        ax = wp.vec3(_row_dot(T, 0, M[0, 0], M[1, 0], M[2, 0]), _row_dot(T, 1, M[0, 0], M[1, 0], M[2, 0]),
+                     _row_dot(T, 2, M[0, 0], M[1, 0], M[2, 0]))
+        ay = wp.vec3(_row_dot(T, 0, M[0, 1], M[1, 1], M[2, 1]), _row_dot(T, 1, M[0, 1], M[1, 1], M[2, 1]),
+                     _row_dot(T, 2, M[0, 1], M[1, 1], M[2, 1]))
+        n = wp.vec3(_row_dot(T, 0, M[0, 2], M[1, 2], M[2, 2]), _row_dot(T, 1, M[0, 2], M[1, 2], M[2, 2]),
+                    _row_dot(T, 2, M[0, 2], M[1, 2], M[2, 2]))
+        return c, ax, ay, n
+
+    @wp.func
+    def _dot3(a: wp.vec3, b: wp.vec3):
+        return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+    @wp.kernel(enable_backward=False)
+    def _setup_fwd(
+        center: wp.array(dtype=wp.vec3), quat: wp.array(dtype=wp.vec4), radii: wp.array(dtype=wp.vec4),
+        T: wp.array(dtype=float), r_min: float, r_max: float,
+        c: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3), ay: wp.array(dtype=wp.vec3),
+        n: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec4), nc: wp.array(dtype=float),
+    ):
+        k = wp.tid()
+        qn, qh, M = _rotation(quat[k])
+        ck, xk, yk, nk = _to_camera(T, center[k], M)
+        d = _dot3(nk, ck)
+        if d > 0.0:  # the normal faces the camera
+            nk = -nk
+            d = -d
+        rk = radii[k]
+        for i in range(4):
+            if wp.isfinite(rk[i]):  # torch's clamp keeps a NaN, and a NaN radius hides the plane
+                rk[i] = wp.clamp(rk[i], r_min, r_max)
+        c[k] = ck
+        ax[k] = xk
+        ay[k] = yk
+        n[k] = nk
+        r[k] = rk
+        nc[k] = d
+
+    @wp.kernel(enable_backward=False)
+    def _setup_bwd(
+        center: wp.array(dtype=wp.vec3), quat: wp.array(dtype=wp.vec4), radii: wp.array(dtype=wp.vec4),
+        T: wp.array(dtype=float), r_min: float, r_max: float, n_chunks: int,
+        g_c: wp.array2d(dtype=wp.vec3), g_ax: wp.array2d(dtype=wp.vec3), g_ay: wp.array2d(dtype=wp.vec3),
+        g_n: wp.array2d(dtype=wp.vec3), g_r: wp.array2d(dtype=wp.vec4),
+        g_center: wp.array(dtype=wp.vec3), g_quat: wp.array(dtype=wp.vec4), g_radii: wp.array(dtype=wp.vec4),
+    ):
+        # the reverse of _setup_fwd (autograd of render._planes_in_camera); the raster reverse pass's per-chunk
+        # gradient buffers are summed here, chunk 0 first
+        k = wp.tid()
+        gc, gx, gy, gn = wp.vec3(), wp.vec3(), wp.vec3(), wp.vec3()
+        gr = wp.vec4()
+        for h in range(n_chunks):
+            gc += g_c[h, k]
+            gx += g_ax[h, k]
+            gy += g_ay[h, k]
+            gn += g_n[h, k]
+            gr += g_r[h, k]
+        qn, qh, M = _rotation(quat[k])
+        ck, xk, yk, nk = _to_camera(T, center[k], M)
+        if _dot3(nk, ck) > 0.0:
+            gn = -gn
+        R = wp.mat33(T[0], T[1], T[2], T[4], T[5], T[6], T[8], T[9], T[10])
+        Rt = wp.transpose(R)
+        g_center[k] = Rt * gc
+        # dL/dM = R^T [gX gY gn]: columns of R M are the axes
+        G = Rt * wp.matrix_from_cols(gx, gy, gn)
+        w, x, y, z = qh[0], qh[1], qh[2], qh[3]
+        gw = 2.0 * (-z * G[0, 1] + y * G[0, 2] + z * G[1, 0] - x * G[1, 2] - y * G[2, 0] + x * G[2, 1])
+        gqx = 2.0 * (y * G[0, 1] + z * G[0, 2] + y * G[1, 0] - 2.0 * x * G[1, 1] - w * G[1, 2] + z * G[2, 0]
+                     + w * G[2, 1] - 2.0 * x * G[2, 2])
+        gqy = 2.0 * (-2.0 * y * G[0, 0] + x * G[0, 1] + w * G[0, 2] + x * G[1, 0] + z * G[1, 2] - w * G[2, 0]
+                     + z * G[2, 1] - 2.0 * y * G[2, 2])
+        gqz = 2.0 * (-2.0 * z * G[0, 0] - w * G[0, 1] + x * G[0, 2] + w * G[1, 0] - 2.0 * z * G[1, 1]
+                     + y * G[1, 2] + x * G[2, 0] + y * G[2, 1])
+        gh = wp.vec4(gw, gqx, gqy, gqz)
+        q = quat[k]
+        if q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3] >= 1.0e-24:
+            gh = gh - qh * wp.dot(qh, gh)  # through the normalization; below the clamp the norm is a constant
+        g_quat[k] = gh / qn
+        rk = radii[k]
+        for i in range(4):
+            if not (rk[i] >= r_min and rk[i] <= r_max):  # torch's clamp passes the gradient inside [min, max]
+                gr[i] = 0.0
+        g_radii[k] = gr
+
+    @wp.kernel(enable_backward=False)
+    def _recenter(center: wp.array(dtype=wp.vec3), quat: wp.array(dtype=wp.vec4), radii: wp.array(dtype=wp.vec4),
+                  r_min: float, r_max: float):
+        # Planes.recentered and the quaternion's normalisation, in place: the centre moves to the middle of the
+        # clamped rectangle, x+ = x- and y+ = y-
+        k = wp.tid()
+        qn, qh, M = _rotation(quat[k])
+        rk = radii[k]
+        for i in range(4):
+            if wp.isfinite(rk[i]):
+                rk[i] = wp.clamp(rk[i], r_min, r_max)
+        center[k] = center[k] + (0.5 * (rk[0] - rk[1])) * wp.vec3(M[0, 0], M[1, 0], M[2, 0]) + (
+            0.5 * (rk[2] - rk[3])) * wp.vec3(M[0, 1], M[1, 1], M[2, 1])
+        rx = 0.5 * (rk[0] + rk[1])
+        ry = 0.5 * (rk[2] + rk[3])
+        radii[k] = wp.vec4(rx, rx, ry, ry)
+        quat[k] = qh
 
     @wp.kernel(enable_backward=False)
     def _bin_planes(
@@ -421,7 +545,8 @@ def _define(wp):
                 sy = 1.0
             wp.atomic_add(g_r, k, lam * wp.vec4(sx * dzx, (1.0 - sx) * dzx, sy * dzy, (1.0 - sy) * dzy))
 
-    return dict(wp=wp, bin=_bin_planes, emit=_emit_pairs, fwd=_raster_fwd, bwd=_raster_bwd)
+    return dict(wp=wp, setup=_setup_fwd, setup_bwd=_setup_bwd, recenter=_recenter, bin=_bin_planes, emit=_emit_pairs,
+                fwd=_raster_fwd, bwd=_raster_bwd)
 
 
 def _device(t: torch.Tensor) -> str:
@@ -469,107 +594,148 @@ def _launch_chunks(wp, kernel, dim_per_chunk: int, device: str, n: int, args_of,
         f.result()
 
 
-class _Raster(torch.autograd.Function):
-    """Fused forward (selection + compositing) and reverse pass over camera-frame planes.
+def setup(center, quat, radii, T):
+    """Step 1's first half: world-frame planes (K,3), (K,4), (K,4) and cam_from_world as 16 floats -> the camera-frame
+    centre, X, Y, normal (K,3 each, the normal facing the camera), clamped radii (K,4) and n . c (K,), bit for bit
+    :func:`lipmap.planes.render._planes_in_camera`'s."""
+    kn = _kernels()
+    wp = kn["wp"]
+    K, dev = len(center), center.device
+    c, ax, ay, n = (torch.empty(K, 3, dtype=torch.float32, device=dev) for _ in range(4))
+    r = torch.empty(K, 4, dtype=torch.float32, device=dev)
+    nc = torch.empty(K, dtype=torch.float32, device=dev)
+    v3, v4 = wp.vec3, wp.vec4
+    wp.launch(kn["setup"], dim=K, device=_device(center), inputs=[
+        _wa(wp, center, v3), _wa(wp, quat, v4), _wa(wp, radii, v4), _wa(wp, T), R_MIN, R_MAX,
+        _wa(wp, c, v3), _wa(wp, ax, v3), _wa(wp, ay, v3), _wa(wp, n, v3), _wa(wp, r, v4), _wa(wp, nc)])
+    return c, ax, ay, n, r, nc
 
-    Inputs c, X, Y, n (K, 3), r (K, 4) as :class:`lipmap.planes.render._Composite`'s; outputs depth (P,),
-    normal (P, 3), alpha (P,), and hits (P, M) int64 and seen (K,) int32 (1: a pixel composites the plane), not
-    differentiable.
+
+def setup_backward(center, quat, radii, T, grads):
+    """The reverse of :func:`setup`: gradients w.r.t. centre, quaternion and radii from those w.r.t. the camera-frame
+    centre, X, Y, normal and radii, each given as (chunks, K, 3 or 4) partial sums (summed here, chunk 0 first)."""
+    kn = _kernels()
+    wp = kn["wp"]
+    v3, v4 = wp.vec3, wp.vec4
+    # fresh contiguous outputs: empty_like would copy a parameter's strides (numpy-made planes are column-major),
+    # and the kernel would write into _wa's contiguous copy instead
+    g_center, g_quat, g_radii = (torch.empty(x.shape, dtype=x.dtype, device=x.device) for x in (center, quat, radii))
+    wp.launch(kn["setup_bwd"], dim=len(center), device=_device(center), inputs=[
+        _wa(wp, center, v3), _wa(wp, quat, v4), _wa(wp, radii, v4), _wa(wp, T), R_MIN, R_MAX, len(grads[0]),
+        *[_wa(wp, g, ty) for g, ty in zip(grads, (v3, v3, v3, v3, v4))], _wa(wp, g_center, v3),
+        _wa(wp, g_quat, v4), _wa(wp, g_radii, v4)])
+    return g_center, g_quat, g_radii
+
+
+def recenter_(center, quat, radii) -> bool:
+    """Re-centre the planes in place as :meth:`lipmap.planes.primitives.Planes.recentered` does, and normalise the
+    quaternions, in one launch. Returns False (nothing done) where a tensor is not contiguous: the kernel could only
+    write a copy."""
+    if not (center.is_contiguous() and quat.is_contiguous() and radii.is_contiguous()):
+        return False
+    kn = _kernels()
+    wp = kn["wp"]
+    wp.launch(kn["recenter"], dim=len(center), device=_device(center), inputs=[
+        _wa(wp, center.detach(), wp.vec3), _wa(wp, quat.detach(), wp.vec4), _wa(wp, radii.detach(), wp.vec4), R_MIN,
+        R_MAX])
+    return True
+
+
+class _Raster(torch.autograd.Function):
+    """Fused forward (per-plane setup, binning, selection, compositing) and reverse pass.
+
+    Inputs centre (K, 3), quaternion (K, 4), radii (K, 4) in the world frame and cam_from_world as 16 floats;
+    outputs depth (P,), normal (P, 3), alpha (P,), and hits (P, M) int64 and seen (K,) int32 (1: a pixel
+    composites the plane), not differentiable. The pose gets no gradient.
     """
 
     @staticmethod
-    def forward(ctx, c, ax, ay, n, r, nc, u, v, start, cand, zmin, dims):
+    def forward(ctx, center, quat, radii, T, u, v, dims):
         kn = _kernels()
         wp = kn["wp"]
-        width, height, ntx, tile, lam, max_hits, near = dims
-        dev, P = c.device, width * height
+        width, height, tile, lam, max_hits, near, dilate, intrinsics = dims
+        dev, K, P = center.device, len(center), width * height
+        wdev = _device(center)
+        ntx, nty = -(-width // tile), -(-height // tile)
+        v3, v4 = wp.vec3, wp.vec4
+        c, ax, ay, n, r, nc = setup(center, quat, radii, T)
+        planes = [_wa(wp, c, v3), _wa(wp, ax, v3), _wa(wp, ay, v3), _wa(wp, n, v3), _wa(wp, r, v4), _wa(wp, nc)]
+        fx, fy, cx, cy = intrinsics
+        rect = torch.empty(K, 4, dtype=torch.int32, device=dev)
+        count = torch.empty(K, dtype=torch.int32, device=dev)
+        zmin = torch.empty(K, dtype=torch.float32, device=dev)
+        wp.launch(kn["bin"], dim=K, device=wdev, inputs=planes + [
+            dilate, fx, fy, cx, cy, width, height, tile, _wa(wp, u), _wa(wp, v), near, _wa(wp, rect, wp.vec4i),
+            _wa(wp, count), _wa(wp, zmin)])
+        offset = torch.cumsum(count, 0, dtype=torch.int64)
+        total = int(offset[-1])  # the step's one host sync: the size of the pair list
+        keys = torch.empty(total, dtype=torch.int64, device=dev)
+        pair_plane = torch.empty(total, dtype=torch.int32, device=dev)
+        if total:
+            wp.launch(kn["emit"], dim=K, device=wdev, inputs=planes + [
+                dilate, width, height, tile, _wa(wp, u), _wa(wp, v), near, _wa(wp, rect, wp.vec4i), _wa(wp, count),
+                _wa(wp, offset), _wa(wp, zmin), ntx, _wa(wp, keys), _wa(wp, pair_plane)])
+        keys, order = torch.sort(keys)
+        cand = pair_plane[order]
+        tiles = torch.arange(ntx * nty + 1, device=dev, dtype=torch.int64) << 32
+        start = torch.searchsorted(keys, tiles).to(torch.int32)
+
         hits = torch.empty(P, max_hits, dtype=torch.int64, device=dev)
         depth = torch.empty(P, dtype=torch.float32, device=dev)
         alpha = torch.empty(P, dtype=torch.float32, device=dev)
         normal = torch.empty(P, 3, dtype=torch.float32, device=dev)
-        seen = torch.zeros(len(c), dtype=torch.int32, device=dev)
-        n_chunks = _n_chunks(c)
-        v3 = wp.vec3
-        common = [_wa(wp, start), _wa(wp, cand), _wa(wp, zmin), _wa(wp, c, v3), _wa(wp, ax, v3), _wa(wp, ay, v3),
-                  _wa(wp, n, v3), _wa(wp, r, wp.vec4), _wa(wp, nc), _wa(wp, u), _wa(wp, v), width, height, ntx, tile,
-                  lam, max_hits, near]
+        seen = torch.zeros(K, dtype=torch.int32, device=dev)
+        n_chunks = _n_chunks(center)
+        common = [_wa(wp, start), _wa(wp, cand), _wa(wp, zmin)] + planes + [
+            _wa(wp, u), _wa(wp, v), width, height, ntx, tile, lam, max_hits, near]
         outs = [_wa(wp, hits), _wa(wp, depth), _wa(wp, alpha), _wa(wp, normal, v3), _wa(wp, seen)]
         tiles_per_chunk = -(-(len(start) - 1) // n_chunks)
-        _launch_chunks(wp, kn["fwd"], tiles_per_chunk * tile * tile, _device(c), n_chunks,
+        _launch_chunks(wp, kn["fwd"], tiles_per_chunk * tile * tile, wdev, n_chunks,
                        lambda h: common + [h, n_chunks] + outs)
-        ctx.save_for_backward(c, ax, ay, n, r, nc, u, v, hits)
+        ctx.save_for_backward(center, quat, radii, T, c, ax, ay, n, r, nc, u, v, hits)
         ctx.dims = dims
         ctx.mark_non_differentiable(hits, seen)
         return depth, normal, alpha, hits, seen
 
     @staticmethod
     def backward(ctx, v_depth, v_normal, v_alpha, _v_hits, _v_seen):
-        c, ax, ay, n, r, nc, u, v, hits = ctx.saved_tensors
-        width, height, ntx, tile, lam, max_hits, _ = ctx.dims
+        center, quat, radii, T, c, ax, ay, n, r, nc, u, v, hits = ctx.saved_tensors
+        width, height, tile, lam, max_hits = ctx.dims[:5]
         kn = _kernels()
         wp = kn["wp"]
-        P, dev = width * height, c.device
-        v_depth = torch.zeros(P, device=dev) if v_depth is None else v_depth
-        v_alpha = torch.zeros(P, device=dev) if v_alpha is None else v_alpha
-        v_normal = torch.zeros(P, 3, device=dev) if v_normal is None else v_normal
+        P, dev, wdev = width * height, c.device, _device(c)
+        v_depth = torch.zeros(P, device=dev) if v_depth is None else v_depth.contiguous()
+        v_alpha = torch.zeros(P, device=dev) if v_alpha is None else v_alpha.contiguous()
+        v_normal = torch.zeros(P, 3, device=dev) if v_normal is None else v_normal.contiguous()
         threads = _n_chunks(c)
         n_chunks = 1 if dev.type == "cuda" else _CPU_GRAD_SPLIT
         # one set of gradient buffers per chunk: Warp's CPU atomics are plain adds, not thread-safe ones
         grads = [torch.zeros((n_chunks, *x.shape), dtype=x.dtype, device=dev) for x in (c, ax, ay, n, r)]
-        v3 = wp.vec3
+        v3, v4 = wp.vec3, wp.vec4
         common = [_wa(wp, hits), _wa(wp, c, v3), _wa(wp, ax, v3), _wa(wp, ay, v3), _wa(wp, n, v3),
-                  _wa(wp, r, wp.vec4), _wa(wp, nc), _wa(wp, u), _wa(wp, v), width, lam]
+                  _wa(wp, r, v4), _wa(wp, nc), _wa(wp, u), _wa(wp, v), width, lam]
         vs = [_wa(wp, v_depth), _wa(wp, v_normal, v3), _wa(wp, v_alpha)]
-        types = (v3, v3, v3, v3, wp.vec4)
-        _launch_chunks(wp, kn["bwd"], -(-P // n_chunks), _device(c), n_chunks,
+        types = (v3, v3, v3, v3, v4)
+        _launch_chunks(wp, kn["bwd"], -(-P // n_chunks), wdev, n_chunks,
                        lambda h: common + [h, n_chunks] + vs + [_wa(wp, g[h], ty) for g, ty in zip(grads, types)],
                        threads)
-        grads = [g[0] if n_chunks == 1 else g.sum(0) for g in grads]
-        return (*grads, None, None, None, None, None, None, None)
+        return (*setup_backward(center, quat, radii, T, grads), None, None, None, None)
 
 
-def rasterize(cam, u, v, intrinsics, width: int, height: int, lam: float, max_hits: int, tile_size: int,
-              dilate: float, near: float = NEAR):
-    """Render camera-frame planes ``cam`` = (c, X, Y, n, r) with the Warp kernels.
+def rasterize(center, quat, radii, cam_from_world, u, v, intrinsics, width: int, height: int, lam: float,
+              max_hits: int, tile_size: int, dilate: float, near: float = NEAR):
+    """Render world-frame planes (centre (K,3), quaternion (K,4), radii (K,4)) into the camera ``cam_from_world``
+    (4, 4) with the Warp kernels.
 
     ``u`` (W,), ``v`` (H,): the pixel rays (:func:`lipmap.planes.render._pixel_axes`); ``dilate``: how far beyond
     its rectangle a plane is binned (its weight-1e-4 footprint and a margin); ``near``: the near plane's z (m).
     Returns depth (H, W), normal (H, W, 3), alpha (H, W), hits (H W, M) int64, nearest first (depth ties: lower
     index first), -1 padded, and the planes some pixel composites (K,) bool; the first three are differentiable
-    w.r.t. ``cam``.
+    w.r.t. centre, quaternion and radii.
     """
-    kn = _kernels()
-    wp = kn["wp"]
-    c, ax, ay, n, r = (x.contiguous() for x in cam)
-    dev, K = c.device, len(c)
-    wdev = _device(c)
-    fx, fy, cx, cy = intrinsics
-    ntx, nty = -(-width // tile_size), -(-height // tile_size)
-    with torch.no_grad():
-        nc = (n * c).sum(-1)  # the same expression as render._plane_table's: the same rounding
-        rect = torch.empty(K, 4, dtype=torch.int32, device=dev)
-        count = torch.empty(K, dtype=torch.int32, device=dev)
-        zmin = torch.empty(K, dtype=torch.float32, device=dev)
-        v3 = wp.vec3
-        planes = [_wa(wp, c.detach(), v3), _wa(wp, ax.detach(), v3), _wa(wp, ay.detach(), v3),
-                  _wa(wp, n.detach(), v3), _wa(wp, r.detach(), wp.vec4), _wa(wp, nc)]
-        if K:
-            wp.launch(kn["bin"], dim=K, device=wdev, inputs=planes + [
-                dilate, fx, fy, cx, cy, width, height, tile_size, _wa(wp, u), _wa(wp, v), near, _wa(wp, rect, wp.vec4i),
-                _wa(wp, count), _wa(wp, zmin)])
-        offset = torch.cumsum(count, 0, dtype=torch.int64)
-        total = int(offset[-1]) if K else 0  # the step's one host sync: the size of the pair list
-        keys = torch.empty(total, dtype=torch.int64, device=dev)
-        pair_plane = torch.empty(total, dtype=torch.int32, device=dev)
-        if total:
-            wp.launch(kn["emit"], dim=K, device=wdev, inputs=planes + [
-                dilate, width, height, tile_size, _wa(wp, u), _wa(wp, v), near, _wa(wp, rect, wp.vec4i), _wa(wp, count),
-                _wa(wp, offset), _wa(wp, zmin), ntx, _wa(wp, keys), _wa(wp, pair_plane)])
-        keys, order = torch.sort(keys)
-        cand = pair_plane[order]
-        tiles = torch.arange(ntx * nty + 1, device=dev, dtype=torch.int64) << 32
-        start = torch.searchsorted(keys, tiles).to(torch.int32)
-    depth, normal, alpha, hits, seen = _Raster.apply(c, ax, ay, n, r, nc, u, v, start, cand, zmin,
-                                                     (width, height, ntx, tile_size, float(lam), max_hits, float(near)))
+    T = cam_from_world.detach().reshape(16).contiguous()
+    dims = (width, height, tile_size, float(lam), max_hits, float(near), float(dilate), tuple(intrinsics))
+    depth, normal, alpha, hits, seen = _Raster.apply(center.contiguous(), quat.contiguous(), radii.contiguous(), T,
+                                                     u, v, dims)
     return (depth.reshape(height, width), normal.reshape(height, width, 3), alpha.reshape(height, width), hits,
             seen.bool())

@@ -22,6 +22,7 @@ The all-pairs twin of both lives in :mod:`lipmap.planes._torch_impl` (``_render_
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass
@@ -106,14 +107,28 @@ class RenderOutput:
 # shared pieces (both backends)
 # ------------------------------------------------------------------------------------------------
 def _planes_in_camera(center, quat, radii, cam_from_world):
-    """Camera-frame centres (K,3), axes X, Y, normal (K,3 each; normal flipped to face the camera), radii (K,4)."""
+    """Camera-frame centres (K,3), axes X, Y, normal (K,3 each; normal flipped to face the camera), radii (K,4).
+
+    The per-plane setup, written out component by component in the order raster_warp's ``_setup_fwd`` transcribes
+    (a matmul sums in an order of its own): both backends then see bit-identical planes, and so select the same
+    hits. Differentiable (autograd here; the Warp kernel has its hand-derived reverse, ``_setup_bwd``).
+    """
     T = cam_from_world.to(device=center.device, dtype=center.dtype)
-    c = center @ T[:3, :3].T + T[:3, 3]
-    Rc = T[:3, :3] @ quat_to_rotmat(quat)
-    # contiguous copies: index_select on the strided column views is several times slower
-    ax, ay, n = Rc[..., 0].contiguous(), Rc[..., 1].contiguous(), Rc[..., 2]
-    n = torch.where(((n * c).sum(-1) > 0)[:, None], -n, n)
+    M = quat_to_rotmat(quat)
+    cx, cy, cz = center.unbind(-1)
+
+    def row(i, a, b, d):  # T[i, :3] . (a, b, d), left to right
+        return T[i, 0] * a + T[i, 1] * b + T[i, 2] * d
+
+    c = torch.stack([row(i, cx, cy, cz) + T[i, 3] for i in range(3)], -1)
+    ax, ay, n = (torch.stack([row(i, M[:, 0, j], M[:, 1, j], M[:, 2, j]) for i in range(3)], -1) for j in range(3))
+    n = torch.where((_dot3(n, c) > 0)[:, None], -n, n)
     return c, ax, ay, n, radii.clamp(R_MIN, R_MAX)
+
+
+def _dot3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(K,3) . (K,3) -> (K,), summed left to right as the Warp kernels do."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
 
 def _plane_table(c, ax, ay, n, r) -> torch.Tensor:
@@ -121,8 +136,7 @@ def _plane_table(c, ax, ay, n, r) -> torch.Tensor:
     whose intersections lie behind the camera. Component-major, so that each gathered component is contiguous
     (elementwise ops on strided columns do not vectorize)."""
     with torch.no_grad():
-        nc = (n * c).sum(-1, keepdim=True)
-        tab = torch.cat([c, ax, ay, n, r, nc], 1)
+        tab = torch.cat([c, ax, ay, n, r, _dot3(n, c)[:, None]], 1)
         dummy = torch.zeros(1, 17, dtype=tab.dtype, device=tab.device)
         dummy[0, 11], dummy[0, 12:16], dummy[0, _NC] = 1.0, R_MIN, -1.0  # normal +z, n . c = -1: t = -1 < NEAR
         return torch.cat([tab, dummy]).T.contiguous()
@@ -133,8 +147,10 @@ def _gather(tab: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return tab.index_select(1, idx.reshape(-1)).reshape(tab.shape[0], *idx.shape)
 
 
-def _pixel_axes(width: int, height: int, intrinsics, dtype, device):
-    """x / z of each column's and y / z of each row's pixel centre (COLMAP convention): (W,), (H,)."""
+@functools.lru_cache(maxsize=64)
+def _pixel_axes(width: int, height: int, intrinsics: tuple, dtype, device):
+    """x / z of each column's and y / z of each row's pixel centre (COLMAP convention): (W,), (H,). Cached per camera
+    (a training loop renders the same few cameras thousands of times); read-only."""
     fx, fy, cx, cy = intrinsics
     u = (torch.arange(width, device=device, dtype=dtype) + 0.5 - cx) / fx
     v = (torch.arange(height, device=device, dtype=dtype) + 0.5 - cy) / fy
@@ -621,14 +637,19 @@ def rasterize_planes(
         raise InputError(f"the near plane must lie at a finite z >= 0, got {near}")
     intrinsics = tuple(float(v) for v in intrinsics)
     which = resolve_backend(backend, center.device, center.dtype, max_hits) if len(center) else "torch"
-    cam = _planes_in_camera(center, quat, radii, cam_from_world)
+    if which == "warp" and cam_from_world.requires_grad:
+        if backend == "warp":
+            raise InputError("the Warp renderer gives no gradient w.r.t. the pose; pass backend='torch'")
+        which = "torch"
     if which == "warp":
         from . import raster_warp
 
         u, v = _pixel_axes(width, height, intrinsics, center.dtype, center.device)
-        depth, normal, alpha, hits, seen = raster_warp.rasterize(cam, u, v, intrinsics, width, height, lam, max_hits,
-                                                                 tile_size, BIN_SLACK * SPLAT_MARGIN / lam, near)
+        depth, normal, alpha, hits, seen = raster_warp.rasterize(
+            center, quat, radii, cam_from_world, u, v, intrinsics, width, height, lam, max_hits, tile_size,
+            BIN_SLACK * SPLAT_MARGIN / lam, near)
         return RenderOutput(depth, normal, alpha, hits.reshape(height, width, max_hits), seen)
+    cam = _planes_in_camera(center, quat, radii, cam_from_world)
     tab = _plane_table(*cam)
     P = width * height
     t_w = [torch.zeros(P, max_hits, dtype=center.dtype, device=center.device) for _ in range(2)]
