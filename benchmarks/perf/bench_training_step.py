@@ -10,7 +10,8 @@ resolution (the planes grow from their small initial radii, kernels load), then 
 come from cProfile over the timed iterations (cumulative seconds per iteration; the profiler's own overhead is in
 the total too, so compare rows with each other). The total column is timed without the profiler. Syncs: the
 operations of one iteration that would wait for a GPU (counted on the CPU, as ``tests/test_raster_fused.py`` does;
-on a CPU the line term compacts its rows, one of them, which it does not on a GPU). ``--tag`` names the run in the
+on a CPU the line term compacts its rows, one of them, which it does not on a GPU), and all the torch operations
+it dispatches (Warp's launches not included). ``--tag`` names the run in the
 table's first column: run on a checkout of an older commit (with this script copied in), it gives the "before" rows.
 
 Writes ``benchmarks/results/perf-training-step-redkitchen[-TAG].json``.
@@ -35,7 +36,7 @@ import results  # noqa: E402
 
 DATA = (REPO / ".." / "shared" / "data" / "7scenes-redkitchen-mini").resolve()
 HEADER = ["run", "renderer", "resolution", "ms per iteration", "render (forward)", "line term", "of it: first hits",
-          "backward + Adam", "plane loss", "syncs per iteration"]
+          "backward + Adam", "plane loss", "syncs per iteration", "torch operations per iteration"]
 # (column, the file and function whose cumulative time it is)
 PARTS = [("render (forward)", ("optimize.py", "render_target")), ("line term", ("supervision.py", "__call__")),
          ("of it: first hits", ("supervision.py", "_first_hits")), ("backward + Adam", ("optimize.py", "_apply_step")),
@@ -86,7 +87,7 @@ def measure(args) -> list[dict]:
                 key = (Path(file).name, fn)
                 cum[key] = cum.get(key, 0.0) + ct
         # one iteration's syncs
-        params = [p.clone().requires_grad_() for p in planes.tensors()]
+        params = [p.clone(memory_format=torch.contiguous_format).requires_grad_() for p in planes.tensors()]
         sched = opt_mod.Schedule.of(run, len(targets))
         opt = opt_mod._make_optimizer(params, run)
         st = opt_mod._EpochStats.zeros(len(params[0]), params[0].device)
@@ -95,7 +96,8 @@ def measure(args) -> list[dict]:
             opt_mod._train_view(params, opt, targets[1], 1, sched, sup, st)
         row = {"run": args.tag or "this commit", "renderer": os.environ.get("LIPMAP_RENDER_BACKEND", "auto"),
                "resolution": label,
-               "ms per iteration": round(1000 * total, 1), "syncs per iteration": n.syncs}
+               "ms per iteration": round(1000 * total, 1), "syncs per iteration": n.syncs,
+               "torch operations per iteration": n.ops}
         for col, key in PARTS:
             row[col] = round(1000 * cum.get(key, 0.0) / args.iterations, 1)
         rows.append(row)

@@ -16,8 +16,9 @@ here bin the planes into screen tiles first and only test a pixel against its ti
 - ``"auto"`` (the default; ``LIPMAP_RENDER_BACKEND`` overrides it): Warp where it is installed and the
   tensors are float32 on CPU or CUDA, torch otherwise.
 
-Both backends compute every (pixel, plane) pair with the same arithmetic (:func:`_pair_terms`; Warp's
-``_pair`` is its transcription) and break depth ties by plane index, so they select the same hits.
+Both backends move the planes into the camera with the same arithmetic (:func:`_planes_in_camera`; Warp's
+``_setup_fwd`` is its transcription), compute every (pixel, plane) pair with the same arithmetic
+(:func:`_pair_terms`; Warp's ``_pair_geo``) and break depth ties by plane index, so they select the same hits.
 The all-pairs twin of both lives in :mod:`lipmap.planes._torch_impl` (``_render_all_pairs``).
 """
 from __future__ import annotations
