@@ -412,7 +412,9 @@ def _define(wp):
             t, den, q, px, py, zx, zy, z = _pair_geo(c[k], ax[k], ay[k], n[k], r[k], nc[k], u, v, lam)
             if not (t > near and t < inf) or z < z_reject:
                 continue
-            w = _weight(z, _sigmoid(z))
+            w = float(1.0)
+            if not (z >= 0.0):  # _weight without the exponential inside the rectangle (NaN stays NaN)
+                w = 2.0 * _sigmoid(z)
             if not (w > weps):
                 continue
             pos = m
@@ -558,6 +560,14 @@ def _wa(wp, t: torch.Tensor, dtype=None):
     return wp.from_torch(t.contiguous(), dtype=dtype, requires_grad=False)
 
 
+def _view(wp, t: torch.Tensor, dtype=None):
+    """A Warp array descriptor of a contiguous torch tensor whose storage outlives the launch: no copy and no Python
+    array object (a step passes about 80 arrays; ``wp.array`` wrappers cost about 1 ms of it on a CPU)."""
+    if not t.is_contiguous():
+        raise ValueError("a Warp view needs a contiguous tensor")  # a copy would be freed before the kernel runs
+    return wp.from_torch(t, dtype=dtype, requires_grad=False, return_ctype=True)
+
+
 # the CPU reverse pass accumulates into this many gradient buffers (pixels interleaved), summed in order: a fixed
 # split, so the gradients do not depend on how many threads run it
 _CPU_GRAD_SPLIT = 4
@@ -579,18 +589,22 @@ def _launch_chunks(wp, kernel, dim_per_chunk: int, device: str, n: int, args_of,
     """Launch ``kernel`` as ``n`` interleaved chunks, ``args_of(chunk)`` giving each one's arguments, on ``threads``
     threads (default ``n``).
 
-    CPU chunks run on a thread pool (a CPU launch releases the GIL); their arguments are packed here, on
-    the calling thread.
+    CPU chunks run on the calling thread and ``threads - 1`` pool threads (a CPU launch releases the GIL), each
+    taking the next chunk not yet taken; their arguments are packed here, on the calling thread.
     """
     if dim_per_chunk == 0:
         return
     cmds = [wp.launch(kernel, dim=dim_per_chunk, device=device, inputs=args_of(h), record_cmd=True) for h in range(n)]
     threads = min(n, threads or n)
-    if threads == 1:
-        for cmd in cmds:
+    todo = iter(cmds)  # next() on a list iterator is atomic under the GIL: each chunk runs once
+
+    def drain():
+        for cmd in todo:
             cmd.launch()
-        return
-    for f in [_pool(threads).submit(cmd.launch) for cmd in cmds]:
+
+    helpers = [_pool(threads - 1).submit(drain) for _ in range(threads - 1)] if threads > 1 else []
+    drain()
+    for f in helpers:
         f.result()
 
 
@@ -600,14 +614,15 @@ def setup(center, quat, radii, T):
     :func:`lipmap.planes.render._planes_in_camera`'s."""
     kn = _kernels()
     wp = kn["wp"]
+    center, quat, radii, T = (x.contiguous() for x in (center, quat, radii, T))
     K, dev = len(center), center.device
     c, ax, ay, n = (torch.empty(K, 3, dtype=torch.float32, device=dev) for _ in range(4))
     r = torch.empty(K, 4, dtype=torch.float32, device=dev)
     nc = torch.empty(K, dtype=torch.float32, device=dev)
     v3, v4 = wp.vec3, wp.vec4
     wp.launch(kn["setup"], dim=K, device=_device(center), inputs=[
-        _wa(wp, center, v3), _wa(wp, quat, v4), _wa(wp, radii, v4), _wa(wp, T), R_MIN, R_MAX,
-        _wa(wp, c, v3), _wa(wp, ax, v3), _wa(wp, ay, v3), _wa(wp, n, v3), _wa(wp, r, v4), _wa(wp, nc)])
+        _view(wp, center, v3), _view(wp, quat, v4), _view(wp, radii, v4), _view(wp, T), R_MIN, R_MAX,
+        _view(wp, c, v3), _view(wp, ax, v3), _view(wp, ay, v3), _view(wp, n, v3), _view(wp, r, v4), _view(wp, nc)])
     return c, ax, ay, n, r, nc
 
 
@@ -617,13 +632,15 @@ def setup_backward(center, quat, radii, T, grads):
     kn = _kernels()
     wp = kn["wp"]
     v3, v4 = wp.vec3, wp.vec4
+    center, quat, radii, T = (x.contiguous() for x in (center, quat, radii, T))
+    grads = [g.contiguous() for g in grads]
     # fresh contiguous outputs: empty_like would copy a parameter's strides (numpy-made planes are column-major),
     # and the kernel would write into _wa's contiguous copy instead
     g_center, g_quat, g_radii = (torch.empty(x.shape, dtype=x.dtype, device=x.device) for x in (center, quat, radii))
     wp.launch(kn["setup_bwd"], dim=len(center), device=_device(center), inputs=[
-        _wa(wp, center, v3), _wa(wp, quat, v4), _wa(wp, radii, v4), _wa(wp, T), R_MIN, R_MAX, len(grads[0]),
-        *[_wa(wp, g, ty) for g, ty in zip(grads, (v3, v3, v3, v3, v4))], _wa(wp, g_center, v3),
-        _wa(wp, g_quat, v4), _wa(wp, g_radii, v4)])
+        _view(wp, center, v3), _view(wp, quat, v4), _view(wp, radii, v4), _view(wp, T), R_MIN, R_MAX, len(grads[0]),
+        *[_view(wp, g, ty) for g, ty in zip(grads, (v3, v3, v3, v3, v4))], _view(wp, g_center, v3),
+        _view(wp, g_quat, v4), _view(wp, g_radii, v4)])
     return g_center, g_quat, g_radii
 
 
@@ -636,7 +653,7 @@ def recenter_(center, quat, radii) -> bool:
     kn = _kernels()
     wp = kn["wp"]
     wp.launch(kn["recenter"], dim=len(center), device=_device(center), inputs=[
-        _wa(wp, center.detach(), wp.vec3), _wa(wp, quat.detach(), wp.vec4), _wa(wp, radii.detach(), wp.vec4), R_MIN,
+        _view(wp, center.detach(), wp.vec3), _view(wp, quat.detach(), wp.vec4), _view(wp, radii.detach(), wp.vec4), R_MIN,
         R_MAX])
     return True
 
@@ -659,22 +676,22 @@ class _Raster(torch.autograd.Function):
         ntx, nty = -(-width // tile), -(-height // tile)
         v3, v4 = wp.vec3, wp.vec4
         c, ax, ay, n, r, nc = setup(center, quat, radii, T)
-        planes = [_wa(wp, c, v3), _wa(wp, ax, v3), _wa(wp, ay, v3), _wa(wp, n, v3), _wa(wp, r, v4), _wa(wp, nc)]
+        planes = [_view(wp, c, v3), _view(wp, ax, v3), _view(wp, ay, v3), _view(wp, n, v3), _view(wp, r, v4), _view(wp, nc)]
         fx, fy, cx, cy = intrinsics
         rect = torch.empty(K, 4, dtype=torch.int32, device=dev)
         count = torch.empty(K, dtype=torch.int32, device=dev)
         zmin = torch.empty(K, dtype=torch.float32, device=dev)
         wp.launch(kn["bin"], dim=K, device=wdev, inputs=planes + [
-            dilate, fx, fy, cx, cy, width, height, tile, _wa(wp, u), _wa(wp, v), near, _wa(wp, rect, wp.vec4i),
-            _wa(wp, count), _wa(wp, zmin)])
+            dilate, fx, fy, cx, cy, width, height, tile, _view(wp, u), _view(wp, v), near, _view(wp, rect, wp.vec4i),
+            _view(wp, count), _view(wp, zmin)])
         offset = torch.cumsum(count, 0, dtype=torch.int64)
         total = int(offset[-1])  # the step's one host sync: the size of the pair list
         keys = torch.empty(total, dtype=torch.int64, device=dev)
         pair_plane = torch.empty(total, dtype=torch.int32, device=dev)
         if total:
             wp.launch(kn["emit"], dim=K, device=wdev, inputs=planes + [
-                dilate, width, height, tile, _wa(wp, u), _wa(wp, v), near, _wa(wp, rect, wp.vec4i), _wa(wp, count),
-                _wa(wp, offset), _wa(wp, zmin), ntx, _wa(wp, keys), _wa(wp, pair_plane)])
+                dilate, width, height, tile, _view(wp, u), _view(wp, v), near, _view(wp, rect, wp.vec4i), _view(wp, count),
+                _view(wp, offset), _view(wp, zmin), ntx, _view(wp, keys), _view(wp, pair_plane)])
         keys, order = torch.sort(keys)
         cand = pair_plane[order]
         tiles = torch.arange(ntx * nty + 1, device=dev, dtype=torch.int64) << 32
@@ -686,9 +703,9 @@ class _Raster(torch.autograd.Function):
         normal = torch.empty(P, 3, dtype=torch.float32, device=dev)
         seen = torch.zeros(K, dtype=torch.int32, device=dev)
         n_chunks = _n_chunks(center)
-        common = [_wa(wp, start), _wa(wp, cand), _wa(wp, zmin)] + planes + [
-            _wa(wp, u), _wa(wp, v), width, height, ntx, tile, lam, max_hits, near]
-        outs = [_wa(wp, hits), _wa(wp, depth), _wa(wp, alpha), _wa(wp, normal, v3), _wa(wp, seen)]
+        common = [_view(wp, start), _view(wp, cand), _view(wp, zmin)] + planes + [
+            _view(wp, u), _view(wp, v), width, height, ntx, tile, lam, max_hits, near]
+        outs = [_view(wp, hits), _view(wp, depth), _view(wp, alpha), _view(wp, normal, v3), _view(wp, seen)]
         tiles_per_chunk = -(-(len(start) - 1) // n_chunks)
         _launch_chunks(wp, kn["fwd"], tiles_per_chunk * tile * tile, wdev, n_chunks,
                        lambda h: common + [h, n_chunks] + outs)
@@ -712,12 +729,12 @@ class _Raster(torch.autograd.Function):
         # one set of gradient buffers per chunk: Warp's CPU atomics are plain adds, not thread-safe ones
         grads = [torch.zeros((n_chunks, *x.shape), dtype=x.dtype, device=dev) for x in (c, ax, ay, n, r)]
         v3, v4 = wp.vec3, wp.vec4
-        common = [_wa(wp, hits), _wa(wp, c, v3), _wa(wp, ax, v3), _wa(wp, ay, v3), _wa(wp, n, v3),
-                  _wa(wp, r, v4), _wa(wp, nc), _wa(wp, u), _wa(wp, v), width, lam]
-        vs = [_wa(wp, v_depth), _wa(wp, v_normal, v3), _wa(wp, v_alpha)]
+        common = [_view(wp, hits), _view(wp, c, v3), _view(wp, ax, v3), _view(wp, ay, v3), _view(wp, n, v3),
+                  _view(wp, r, v4), _view(wp, nc), _view(wp, u), _view(wp, v), width, lam]
+        vs = [_view(wp, v_depth), _view(wp, v_normal, v3), _view(wp, v_alpha)]
         types = (v3, v3, v3, v3, v4)
         _launch_chunks(wp, kn["bwd"], -(-P // n_chunks), wdev, n_chunks,
-                       lambda h: common + [h, n_chunks] + vs + [_wa(wp, g[h], ty) for g, ty in zip(grads, types)],
+                       lambda h: common + [h, n_chunks] + vs + [_view(wp, g[h], ty) for g, ty in zip(grads, types)],
                        threads)
         return (*setup_backward(center, quat, radii, T, grads), None, None, None, None)
 
