@@ -634,9 +634,7 @@ def setup_backward(center, quat, radii, T, grads):
     v3, v4 = wp.vec3, wp.vec4
     center, quat, radii, T = (x.contiguous() for x in (center, quat, radii, T))
     grads = [g.contiguous() for g in grads]
-    # fresh contiguous outputs: empty_like would copy a parameter's strides (numpy-made planes are column-major),
-    # and the kernel would write into _wa's contiguous copy instead
-    g_center, g_quat, g_radii = (torch.empty(x.shape, dtype=x.dtype, device=x.device) for x in (center, quat, radii))
+    g_center, g_quat, g_radii = (torch.empty_like(x) for x in (center, quat, radii))  # contiguous, as their inputs
     wp.launch(kn["setup_bwd"], dim=len(center), device=_device(center), inputs=[
         _view(wp, center, v3), _view(wp, quat, v4), _view(wp, radii, v4), _view(wp, T), R_MIN, R_MAX, len(grads[0]),
         *[_view(wp, g, ty) for g, ty in zip(grads, (v3, v3, v3, v3, v4))], _view(wp, g_center, v3),
