@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from localization.linequery import LineQueryConfig
-from localization.pipeline import LocalizationConfig, run_eval
+from localization.config import LocalizationConfig
+from localization.pipeline import run_eval
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import results  # noqa: E402

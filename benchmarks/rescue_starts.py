@@ -83,7 +83,7 @@ def row(scene: str, method: str, matches, s: dict) -> list:
 
 def trace_scene(scene, points, lq, lines, conf, seeds) -> list:
     """:func:`query_outcome` of every query of every draw."""
-    from localization.pipeline import localize_query
+    from localization.query import localize_query
 
     out = []
     for seed in seeds:
@@ -98,7 +98,7 @@ def trace_scene(scene, points, lq, lines, conf, seeds) -> list:
 def main(argv=None):
     from lipmap.datasets import load_scene
     from localization.cli import _mapping_conf
-    from localization.pipeline import LocalizationConfig
+    from localization.config import LocalizationConfig
     from localization_variants import eval_inputs, variant_config
 
     ap = results.scene_parser(__doc__)

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from lipmap import InputError, logger
+from lipmap.cliargs import OneLineParser, float_at_least, int_at_least, number_list
 
 
 def _scene_names(dataset: str, root, scenes: str | None) -> list[str]:
@@ -84,23 +85,42 @@ def cmd_info(args):
         print(f"  pose source: {s['pose_source']}   mapping camera extent {s['mapping_extent_m']} m")
 
 
-def _number_pair(text: str, usage: str) -> tuple:
-    """``A,B`` as two floats; ``usage`` ("--option takes ...") starts the error otherwise."""
-    try:
-        a, b = (float(x) for x in text.split(","))
-    except ValueError:
-        raise InputError(f"{usage}, got {text!r}") from None
-    return a, b
-
-
 def _max_line_step(text: str) -> tuple:
+    """``--max-line-step M,DEG`` (both > 0) or ``off``."""
     if text.strip().lower() in ("off", "0"):
         return ()
-    usage = "--max-line-step takes 'METRES,DEGREES' (both > 0, e.g. 0.3,5) or 'off'"
-    m, deg = _number_pair(text, usage)
-    if not (m > 0 and deg > 0):
-        raise InputError(f"{usage}, got {text!r}")
-    return (m, deg)
+    return number_list(0.0, True, 2, "METRES,DEGREES (both > 0, e.g. 0.3,5) or 'off'")(text)
+
+
+def _point_budget(text: str):
+    """``--max-point-matches``: ``all`` (None) or a number of matches >= 1."""
+    if text.strip().lower() == "all":
+        return None
+    try:
+        return int_at_least(1)(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"takes 'all' or a number of matches >= 1, got {text!r}") from None
+
+
+def _keyframes(text: str) -> tuple:
+    """``--keyframes CM,DEG`` (both >= 0) or ``0``."""
+    if text.strip() == "0":
+        return (0.0, 0.0)
+    return number_list(0.0, False, 2, "CM,DEG (both >= 0, e.g. 5,5) or 0")(text)
+
+
+def _gate(example: str):
+    """An argparse type for ``PX,RAD`` gates: PX > 0 and 0 < RAD < pi/2."""
+    pair = number_list(0.0, True, 2, f"PX,RAD (PX > 0, 0 < RAD < pi/2; e.g. {example})")
+
+    def parse(text: str) -> tuple:
+        px, rad = pair(text)
+        if not rad < math.pi / 2:
+            raise argparse.ArgumentTypeError(f"takes PX,RAD with 0 < RAD < pi/2, got {text!r}")
+        return px, rad
+
+    parse.__name__ = "PX,RAD"
+    return parse
 
 
 def eval_config(args):
@@ -108,26 +128,22 @@ def eval_config(args):
     from dataclasses import replace
 
     from .linequery import LineQueryConfig
-    from .pipeline import LocalizationConfig
+    from .config import LocalizationConfig
 
     conf = LocalizationConfig(seed=args.seed, max_point_matches=args.max_point_matches, mapping=_mapping_conf(args),
                               map_method=args.method, points=args.points)
     if args.line_query:
         conf = replace(conf, line_query=replace(LineQueryConfig(), method=args.line_query))
     if args.min_support is not None:
-        if args.min_support < 0:
-            raise InputError(f"--min-support takes a number of mapping images >= 0, got {args.min_support}")
         hyp = replace(conf.line_rescue.hypotheses, min_support=args.min_support)
         conf = replace(conf, line_query=replace(conf.line_query, min_support=args.min_support),
                        line_rescue=replace(conf.line_rescue, hypotheses=hyp))
     if args.line_rescue is not None:
-        if args.line_rescue < 0:
-            raise InputError(f"--line-rescue takes a number of inliers >= 0, got {args.line_rescue}")
         conf = replace(conf, line_rescue=replace(conf.line_rescue, weak_inliers=args.line_rescue))
     if args.rescue_solver:
         conf = replace(conf, line_rescue=replace(conf.line_rescue, solver=args.rescue_solver))
     if args.max_line_step is not None:
-        conf = replace(conf, max_line_step=_max_line_step(args.max_line_step))
+        conf = replace(conf, max_line_step=args.max_line_step)
     if args.no_vanishing_points:
         hyp = replace(conf.line_rescue.hypotheses, upright=False)
         conf = replace(conf, line_rescue=replace(conf.line_rescue, hypotheses=hyp))
@@ -192,12 +208,8 @@ def cmd_map(args):
 
     over = {}
     if args.plane_depth_tol is not None:
-        if not args.plane_depth_tol >= 0:
-            raise InputError(f"--plane-depth-tol must be >= 0 metres, got {args.plane_depth_tol}")
         over["plane_depth_tol"] = args.plane_depth_tol
     conf = _mapping_conf(args, **over)
-    if args.mapping_step < 1:
-        raise InputError(f"--mapping-step must be >= 1, got {args.mapping_step}")
     scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source,
                        register_depth=not args.no_registration, mapping_step=args.mapping_step,
                        skip_bad_frames=args.skip_bad_frames, pgt_dir=args.pgt)
@@ -239,8 +251,6 @@ def cmd_map_eval(args):
     from lipmap.linemap import LineMap
 
     path = Path(args.linemap)
-    if args.min_support < 0:
-        raise InputError(f"--min-support must be >= 0 images, got {args.min_support}")
     lm = LineMap.from_limap(path) if path.is_dir() else LineMap.load(path)
     if args.min_support > 0:
         n_all = len(lm)
@@ -257,10 +267,7 @@ def cmd_map_eval(args):
         gt = scene_ground_truth(scene)
     overrides = {}
     if args.thresholds:
-        try:
-            overrides["m1_thresholds"] = tuple(float(t) for t in args.thresholds.split(","))
-        except ValueError:
-            raise InputError(f"--thresholds {args.thresholds!r}: give metres separated by commas, e.g. 0.02,0.05")
+        overrides["m1_thresholds"] = args.thresholds
     res = evaluate_linemap(lm, gt, **overrides)
     res["min_support"] = args.min_support
     print(format_metrics(res))
@@ -327,8 +334,8 @@ def _add_mapping_args(p, method_default: str):
                    help="mapping preset: fast (CPU; plane edges + lines lifted onto the planes), quick (tests, small "
                         "scenes), paper (reference settings, plane edges only; hours on a CPU)")
     p.add_argument("--method", default=method_default, choices=list(METHODS), help="line map method")
-    p.add_argument("--mapping-step", type=int, default=1, help="use every k-th mapping frame")
-    p.add_argument("--keyframes", default=None, metavar="CM,DEG",
+    p.add_argument("--mapping-step", type=int_at_least(1), default=1, help="use every k-th mapping frame")
+    p.add_argument("--keyframes", default=None, type=_keyframes, metavar="CM,DEG",
                    help="map the views where the camera moved more than CM centimetres or turned more than DEG "
                         "degrees since the last one, and at least every 5th frame (default 5,5; 0 = every view)")
     from lipmap.mapping.refine import REFINE_LINES
@@ -336,19 +343,19 @@ def _add_mapping_args(p, method_default: str):
     p.add_argument("--refine-lines", nargs="?", const="all", default=None, choices=list(REFINE_LINES),
                    help="lipmap: refine these lines (no value: all) against every mapping view that sees them, then "
                         "track them again (default: the preset's; fast refines all, quick and paper none)")
-    p.add_argument("--full-resolution", nargs="?", const=-1, default=None, type=int, metavar="N",
+    p.add_argument("--full-resolution", nargs="?", const=-1, default=None, type=int_at_least(0), metavar="N",
                    help="lipmap: train the planes at the views' own resolution instead of the preset's (fast: half): "
                         "throughout (no value; what a GPU does at about the same cost), or only the last N iterations "
                         "(coarse to fine; fast: the last 900, ~80 s of the RedKitchen mini on 2 CPU cores; 0: none)")
-    p.add_argument("--extract-gate", default=None, metavar="PX,RAD",
+    p.add_argument("--extract-gate", default=None, type=_gate("3,0.03"), metavar="PX,RAD",
                    help="lipmap: extract a plane edge where its projection lies within PX pixels and RAD radians of a "
                         "detected line (fast: 3,0.03; paper: 1,0.01). Wider gates give more plane edges and fewer "
                         "on-plane lines: at 10,0.1 the RedKitchen mini's edges reach F@5cm 0.65 and its full map drops "
                         "(docs/mapping.md)")
-    p.add_argument("--track-gate", default=None, metavar="PX,RAD",
+    p.add_argument("--track-gate", default=None, type=_gate("2,0.01"), metavar="PX,RAD",
                    help="lipmap: a line's track takes a detection its projection lies within PX pixels and RAD radians "
                         "of (default: the paper's 2,0.01)")
-    p.add_argument("--explain-gate", default=None, metavar="PX,RAD",
+    p.add_argument("--explain-gate", default=None, type=_gate("2,0.01"), metavar="PX,RAD",
                    help="lipmap: a detection in a plane edge's track stays out of the on-plane lines only where the edge "
                         "projects within PX and RAD of it (default: every detection an edge tracks). With --track-gate "
                         "4,0.05, --extract-gate 4,0.04, --explain-gate 2,0.01 and --aggregate the RedKitchen mini's map reaches "
@@ -363,20 +370,6 @@ def _add_mapping_args(p, method_default: str):
     p.add_argument("--overwrite", action="store_true", help="remake the artifacts instead of reusing them")
 
 
-def _gate(text: str, option: str, example: str) -> tuple:
-    """``option PX,RAD`` as (px, rad), both checked."""
-    px, rad = _number_pair(text, f"{option} takes PX,RAD (e.g. {example})")
-    if not (px > 0 and 0 < rad < math.pi / 2):
-        raise InputError(f"{option} needs PX > 0 and 0 < RAD < pi/2, got {text!r}")
-    return px, rad
-
-
-def _extract_gate(text: str) -> dict:
-    """``--extract-gate PX,RAD`` as overrides of the mapping preset's extraction settings."""
-    px, rad = _gate(text, "--extract-gate", "3,0.03")
-    return {"max_dist": px, "max_angle": rad}
-
-
 def _full_resolution_planes(preset: str, n: int) -> dict:
     """The plane settings of mapping ``preset`` trained at the views' resolution: throughout (``n`` < 0) or for the
     last ``n`` iterations."""
@@ -384,8 +377,6 @@ def _full_resolution_planes(preset: str, n: int) -> dict:
 
     base = mapping_confs[preset].planes
     planes = dict(base) if isinstance(base, dict) else {"preset": base}
-    if n < -1:
-        raise InputError(f"--full-resolution takes a number of iterations >= 0, or no value for all of them; got {n}")
     planes.update({"downscale": 1} if n < 0 else {"fine_iterations": n, "fine_downscale": 1})
     return planes
 
@@ -393,22 +384,20 @@ def _full_resolution_planes(preset: str, n: int) -> dict:
 def _mapping_conf(args, **overrides):
     """The mapping settings the command line asks for: the preset name, or a dict of overrides of it."""
     if args.keyframes is not None:
-        text = args.keyframes.strip()
-        cm, deg = (0.0, 0.0) if text == "0" else _number_pair(text, "--keyframes takes CM,DEG (e.g. 5,5) or 0")
-        if not (cm >= 0 and deg >= 0):
-            raise InputError(f"--keyframes thresholds must be >= 0, got {args.keyframes!r}")
+        cm, deg = args.keyframes
         overrides["keyframes"] = {"min_translation": cm / 100.0, "min_rotation_deg": deg}
     if getattr(args, "refine_lines", None):
         overrides["refine"] = {"enabled": True, "lines": args.refine_lines}
     if getattr(args, "full_resolution", None) is not None:
         overrides["planes"] = _full_resolution_planes(args.preset, args.full_resolution)
     if getattr(args, "extract_gate", None) is not None:
-        overrides["extract"] = _extract_gate(args.extract_gate)
+        px, rad = args.extract_gate
+        overrides["extract"] = {"max_dist": px, "max_angle": rad}
     if getattr(args, "track_gate", None) is not None:
-        px, rad = _gate(args.track_gate, "--track-gate", "2,0.01")
+        px, rad = args.track_gate
         overrides["extract"] = {**overrides.get("extract", {}), "track_max_dist": px, "track_max_angle": rad}
     if getattr(args, "explain_gate", None) is not None:
-        overrides["explain_gate"] = _gate(args.explain_gate, "--explain-gate", "2,0.01")
+        overrides["explain_gate"] = tuple(args.explain_gate)
     if getattr(args, "aggregate", False):
         overrides["aggregate"] = {"enabled": True}
     return {"preset": args.preset, **overrides} if overrides else args.preset
@@ -425,7 +414,7 @@ def _add_eval_parser(sub):
     from lipmap.datasets.synthetic import SYNTH_PRESETS
 
     from .linequery import LINE_QUERY_METHODS, LineQueryConfig
-    from .pipeline import LocalizationConfig
+    from .config import LocalizationConfig
     from .points import confs as point_confs
 
     p = sub.add_parser("eval", help="localization benchmark: map, localize point-only and point+line, evaluate")
@@ -449,25 +438,27 @@ def _add_eval_parser(sub):
     p.add_argument("--linemap", default=None, metavar="PATH",
                    help="localize against this line map (linemap.h5 from `lipmap-loc map`) instead of mapping here; "
                         "{scene} in PATH becomes each scene's name")
-    p.add_argument("--seed", type=int, default=0, help="seed of every random step (RANSAC, the point-match draws)")
-    p.add_argument("--max-point-matches", type=int, default=None, help="seeded random subset of N 2D-3D point matches per query")
+    p.add_argument("--seed", type=int_at_least(0), default=0, help="seed of every random step (RANSAC, the point-match draws)")
+    p.add_argument("--max-point-matches", type=_point_budget, default=None, metavar="N|all",
+                   help="a seeded random subset of N >= 1 2D-3D point matches per query, the same for point-only and "
+                        "point+line (default all)")
     _add_mapping_args(p, method_default=LocalizationConfig().map_method)
     p.add_argument("--line-query", default=None, choices=list(LINE_QUERY_METHODS),
                    help="how a query's 2D lines find their map lines: projection (default: the map lines visible from "
                         "the pose, projected and matched by angle and distance) or raycast (the paper's: rays of each "
                         "line's 1-px region cast against the planes; lipmap maps only, slower)"),
-    p.add_argument("--min-support", type=int, default=None, metavar="N",
+    p.add_argument("--min-support", type=int_at_least(0), default=None, metavar="N",
                    help="map lines seen in fewer than N mapping images (by the track test) are left out of the line "
                         f"query and the rescue (default {LineQueryConfig().min_support}: the lines no image verifies; "
                         "0: every line)")
-    p.add_argument("--line-rescue", type=int, default=None, metavar="N",
+    p.add_argument("--line-rescue", type=int_at_least(0), default=None, metavar="N",
                    help="a query whose point-only pose has fewer than N inliers (or none) starts its lines from wide "
                         "gates around the P3P poses of its matches that the map lines agree with "
                         f"(default {LocalizationConfig().line_rescue.weak_inliers}; 0: off)")
     p.add_argument("--rescue-solver", default=None, choices=["ransac", "refine"],
                    help="how the rescue estimates a pose from each start: PnPL RANSAC (default), or a robust refinement "
                         "in narrowing gates, about half the time and less accurate (docs/localization.md)")
-    p.add_argument("--max-line-step", default=None, metavar="M,DEG",
+    p.add_argument("--max-line-step", default=None, type=_max_line_step, metavar="M,DEG",
                    help="a line refinement round whose pose moves farther than M metres or DEG degrees from its start "
                         "is refused and the rounds stop (default %s; 'off': every round is taken)"
                         % ",".join(f"{x:g}" for x in LocalizationConfig().max_line_step))
@@ -481,8 +472,8 @@ def _add_eval_parser(sub):
                    help="run on Ray (pip install \"lipmap[ray]\"): each scene's mapping and chunks of its queries are "
                         "tasks. No ADDRESS: a local Ray instance; 'auto', 'ray://HOST:PORT' or 'HOST:PORT': a cluster whose "
                         "workers see OUT and the data at the same paths and run the same Python environment")
-    p.add_argument("--ray-cpus", type=int, default=None, metavar="N", help="CPUs of the local Ray instance (default: all)")
-    p.add_argument("--ray-chunk", type=int, default=None, metavar="N", help="queries per Ray task (default 50)")
+    p.add_argument("--ray-cpus", type=int_at_least(1), default=None, metavar="N", help="CPUs of the local Ray instance (default: all)")
+    p.add_argument("--ray-chunk", type=int_at_least(1), default=None, metavar="N", help="queries per Ray task (default 50)")
     _add_pose_args(p)
     p.set_defaults(func=cmd_eval)
 
@@ -498,7 +489,7 @@ def _add_map_parser(sub):
     p.add_argument("--lines", type=Path, default=None,
                    help="2D lines made elsewhere instead of LSD: hloc/DeepLSD/SOLD2 lines2d.h5, or a folder of HAWP "
                         "WireframeGraph JSON / npz files, one per mapping image (lipmap.lines2d)")
-    p.add_argument("--plane-depth-tol", type=float, default=None, metavar="METRES",
+    p.add_argument("--plane-depth-tol", type=float_at_least(0.0), default=None, metavar="METRES",
                    help="lipmap: lines inside a surface follow the input depth where the planes are more than this "
                         "far from it (preset default 0.03, for sensor depth); 0 = on the planes only (noisy or "
                         "predicted depth)")
@@ -510,8 +501,9 @@ def _add_map_eval_parser(sub):
     p = sub.add_parser("map-eval", help="mapping metrics M1 / M2 of a line map against a mesh or point cloud")
     p.add_argument("--linemap", type=Path, required=True, help="linemap.h5, or a LIMAP folder holding finaltracks/")
     p.add_argument("--gt", type=Path, default=None, help="GT mesh or point cloud (PLY)")
-    p.add_argument("--thresholds", default=None, help="M1 thresholds in metres, comma separated (default 0.05)")
-    p.add_argument("--min-support", type=int, default=0, metavar="N",
+    p.add_argument("--thresholds", default=None, type=number_list(0.0, True, None, "metres > 0 separated by commas, e.g. 0.02,0.05"),
+                   help="M1 thresholds in metres, comma separated (default 0.05)")
+    p.add_argument("--min-support", type=int_at_least(0), default=0, metavar="N",
                    help="evaluate only the lines seen in at least N images (LIMAP's n_visible_views; default 0: all, "
                         "also the lines no image's detection agrees with)")
     p.add_argument("--dataset", choices=["7scenes", "synthetic"],
@@ -531,7 +523,7 @@ _PLUGGED = (("lipmap.datasets.synthetic", "synth"), ("localization.report", "rep
 def build_parser() -> argparse.ArgumentParser:
     import importlib
 
-    ap = argparse.ArgumentParser(prog="lipmap-loc", description=__doc__.splitlines()[0])
+    ap = OneLineParser(prog="lipmap-loc", description=__doc__.splitlines()[0])
     ap.add_argument("-v", "--verbose", action="store_true", help="log debug messages too")
     sub = ap.add_subparsers(dest="command", required=True)
     for add in (_add_info_parser, _add_eval_parser, _add_map_parser, _add_map_eval_parser):
@@ -542,8 +534,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    """Run ``lipmap-loc``; returns the exit code (2 for bad input: a one-line message, no traceback)."""
     ap = build_parser()
-    args = ap.parse_args(argv)
+    try:
+        args = ap.parse_args(argv)
+    except SystemExit as e:  # an argparse error (2) or --help (0): the code, as for any other outcome
+        return e.code if isinstance(e.code, int) else 2
     if args.verbose:
         logger.setLevel(logging.DEBUG)
     try:

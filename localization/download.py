@@ -417,6 +417,8 @@ def download_7scenes(root, scenes=None, pgt: bool = True, hloc_models: bool = Fa
 
 def add_download_parser(subparsers) -> argparse.ArgumentParser:
     """`lipmap-loc download 7scenes --root DATA [--scenes chess,fire|all] [--no-pgt] [--hloc-models] [--retrieval]`."""
+    from lipmap.cliargs import int_at_least
+
     p = subparsers.add_parser("download", help="download 7-Scenes with its pseudo ground truth (resumable)",
                               description="\n\n".join(__doc__.split("\n\n")[:2]),
                               formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -431,7 +433,7 @@ def add_download_parser(subparsers) -> argparse.ArgumentParser:
                    help="hloc's DenseVLAD query pairs, ROOT/7scenes_densevlad_retrieval_top_10 (Google Drive)")
     p.add_argument("--mirror", default=None, help=f"base URL holding the files as MIRROR/<name> (also ${MIRROR_ENV})")
     p.add_argument("--keep-archives", action="store_true", help="keep ROOT/downloads/*.zip after unpacking")
-    p.add_argument("--retries", type=int, default=DownloadConfig.retries, help="tries after a network error, each resuming")
+    p.add_argument("--retries", type=int_at_least(0), default=DownloadConfig.retries, help="tries after a network error, each resuming")
     p.set_defaults(func=cli_download)
     return p
 

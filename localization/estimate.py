@@ -213,7 +213,7 @@ def _camera_pose(T: np.ndarray):
     return pose
 
 
-def estimate_pose_point_line(
+def pnpl_pose(
     p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, lines3d: np.ndarray, camera,
     initial: Optional[np.ndarray] = None, conf: Optional[PointLinePoseConfig] = None,
 ) -> dict:
@@ -270,7 +270,7 @@ def estimate_pose_point_line(
             "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": len(l2)}
 
 
-def refine_pose_point_line(
+def refine_pnpl_pose(
     p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, lines3d: np.ndarray, camera, initial: np.ndarray,
     point_scale: float, line_scale: float, max_reproj_error: float, max_line_error: float,
 ) -> dict:
@@ -284,7 +284,7 @@ def refine_pose_point_line(
             is the farther of its projected 3D endpoints from the detection's infinite line, as PoseLib's).
 
     Returns:
-        the dict of :func:`estimate_pose_point_line`.
+        the dict of :func:`pnpl_pose`.
     """
     import poselib
 

@@ -4,7 +4,7 @@ With ten 2D-3D point matches, a wrong P3P pose often explains as many of them as
 12 px threshold, and RANSAC keeps whichever it met first. The map's lines can tell them apart. Every P3P pose
 of every triple of matches is scored by how many map lines it projects onto detected lines of the same
 direction; the detections are looked up through one mask per direction bin of the pixels near them. The best few
-poses then start the wide-gate line rescue (:func:`localization.pipeline.rescue_pose`).
+poses then start the wide-gate line rescue (:func:`localization.query.rescue_pose`).
 
 P3P needs three right matches among the few. Lines give two more constraints on their own: an indoor map's lines
 run mostly along a few directions, and a query's long lines meet at their vanishing points. Aligning the query's

@@ -18,12 +18,11 @@ per-query results go to a journal so an interrupted run resumes where it stopped
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -31,418 +30,19 @@ import numpy as np
 from tqdm import tqdm
 
 from lipmap import InputError, logger
-from lipmap import geometry as geo
-from lipmap.artifacts import Stamp, digest, scene_key, source_digest, variant_dir, views_key
+from lipmap.artifacts import digest, source_digest, views_key
 from lipmap.imageio import write_text_atomic
-from lipmap.poses import pose_errors
 
 from . import evaluate as ev
-from .estimate import (PointLinePoseConfig, PointPoseConfig, estimate_pose_point_line, estimate_pose_points,
-                       refine_pose_point_line, subsample_matches)
+from . import points as pts
+from .config import LocalizationConfig, check_config
 from .hloc_outputs import HlocOutputs, as_hloc_outputs
-from .hypotheses import HypothesisConfig, line_verified_poses
-from .linequery import LineQuery, LineQueryConfig, correct_line_matches
+from .linequery import LineQuery
+from .query import localize_query, make_line_query
 
 
 # hloc-format results of each method (name qw qx qy qz tx ty tz, cam_from_world)
 RESULT_FILES = {"point": "results_point.txt", "point+line": "results_point_line.txt"}
-
-
-@dataclass
-class LineRescueConfig:
-    """Lines for the queries whose points alone give no trustworthy pose.
-
-    A point-only pose with fewer than ``weak_inliers`` inliers (or none) is too far off for the narrow gates of
-    the line query, and with few matches a wrong P3P pose often explains as many of them as the right one. Lines
-    then start from several poses instead: that pose when it exists, the P3P poses of the point matches that the
-    most map lines agree with (``hypotheses``, :mod:`localization.hypotheses`), and optionally the poses of the
-    ``prior_views`` best retrieved database images. From each, every query line takes its ``candidates`` nearest
-    map lines within the wide gate (no ambiguity test), and PnPL's RANSAC over all point matches and these
-    candidates picks a pose; the pose with the most point + line inliers (at least ``min_line_inliers`` lines)
-    starts the usual narrowing refinement, with ``max_point_error`` for the points.
-    """
-
-    weak_inliers: int = 20  # 0: off. Ten point matches are always weak; a full query (hundreds of inliers) never
-    prior_views: int = 0  # retrieved images' poses as starts (on the held-out split they lie ~90 cm off: no gain)
-    # P3P poses of the point matches that the most map lines agree with, as starts (localization.hypotheses)
-    hypotheses: HypothesisConfig = field(default_factory=HypothesisConfig)
-    # (px, deg[, candidates]) per stage: the first from every prior, the next from the best pose; the second bridges
-    # the wide gate and the 8 px of the narrowing rounds, which a pose 5-10 cm off missed (docs/localization.md, `-sweep2`
-    # variants). From that pose each query line's nearest map line is enough: 20 % less time (`-speed2`)
-    gates: tuple = ((30.0, 5.0), (15.0, 3.0, 1))
-    candidates: int = 3  # per query line, in a stage that does not name its own
-    min_length_px: float = 20.0  # query lines shorter than this stay out of the rescue (the line query's own minimum)
-    max_query_lines: int = 0  # only the longest this many query lines enter the rescue (0: all)
-    min_line_inliers: int = 6
-    max_iterations: int = 1000  # of each start's PnPL RANSAC (2,000 and 10,000: 1.6x and 6x the time, no more accurate)
-    # px, the point threshold of a rescued query's PnPL: with ten points a wrong match within 12 px pulls the pose,
-    # while with hundreds 6 px costs accuracy (held-out, all matches: 2.51 cm against 1.96)
-    max_point_error: float = 6.0
-    # starts this close to an earlier one (and same_pose_deg) are skipped: within the wide gate they find the same
-    # lines (held-out, 10 matches: 15 % less time than at 3 cm / 1 deg, same accuracy; docs/localization.md, `-speed2` variants)
-    same_pose_m: float = 0.10
-    same_pose_deg: float = 3.0
-    # "ransac": each start's candidates go through PoseLib's PnPL RANSAC, and the later ``gates`` refine the best pose;
-    # "refine": each start goes through every stage of ``refine_gates`` as a robust refinement (Cauchy, scale
-    # ``refine_scale`` x the gate) of its nearest candidates, without RANSAC: half the time, a higher median (docs/localization.md)
-    solver: str = "ransac"
-    refine_gates: tuple = ((30.0, 5.0, 1), (15.0, 3.0, 1), (8.0, 3.0, 1))
-    refine_scale: float = 0.25
-
-
-@dataclass
-class LocalizationConfig:
-    seed: int = 0
-    max_point_matches: Optional[int] = None  # seeded random subset per query (same for both methods)
-    match_seed: Optional[int] = None  # seed of that subset (None: ``seed``); vary it alone to average over draws
-    points: str = "sift-n4096"  # localization.points preset (built-in SIFT)
-    retrieval: str = "vlad64"  # localization.retrieval preset
-    num_retrieved: int = 10
-    point_pose: PointPoseConfig = field(default_factory=PointPoseConfig)
-    point_line_pose: PointLinePoseConfig = field(default_factory=PointLinePoseConfig)
-    line_query: LineQueryConfig = field(default_factory=LineQueryConfig)
-    line_iters: int = 2  # line query -> refine, repeated with the refined pose (when line_gates is empty)
-    # per iteration (max_dist_px, max_angle_deg) gates of the line query, overriding line_iters and the gates of
-    # line_query: wide while the pose is the point-only one, narrower once lines have refined it; () = fixed gates
-    line_gates: tuple = ((8.0, 3.0), (4.0, 2.0), (2.0, 1.0))
-    line_rescue: LineRescueConfig = field(default_factory=LineRescueConfig)
-    # (m, deg): a narrowing round whose pose moves farther than this from the pose it started from is not taken (the
-    # rounds refine a pose; a RANSAC jump is a different solution that few right matches support). () = off.
-    # Held-out split, 5 matches, 20 draws: 14.73 cm median against 15.23 without (docs/localization.md, `-step` variants)
-    max_line_step: tuple = (0.3, 5.0)
-    mapping: str = "fast"  # lipmap.mapping.pipeline preset
-    # the LiP-Map map: with scarce points it localizes better than lift's on both mini scenes and the held-out split
-    # (lift's is ahead on the synthetic room; README, docs/localization.md)
-    map_method: str = "lipmap"
-
-    def digest(self) -> str:
-        return digest(asdict(self), 10)
-
-
-# ----------------------------------------------------------------------------------------------
-# point sources
-# ----------------------------------------------------------------------------------------------
-class BuiltinPoints:
-    """SIFT + known-pose triangulation + VLAD retrieval, all cached under ``out_dir``."""
-
-    def __init__(self, scene, scene_dir: Path, conf: LocalizationConfig, overwrite=False):
-        from . import points as pts
-        from .hloc_io import ModelIndex, pairs_by_query, read_pairs, read_sfm
-        from .retrieval import get_conf as retrieval_conf
-
-        pconf = pts.get_conf(conf.points)
-        rconf = replace(retrieval_conf(conf.retrieval), num_retrieved=conf.num_retrieved, seed=conf.seed)
-        self.stamp = Stamp("points", {"points": asdict(pconf), "retrieval": asdict(rconf), "scene": scene_key(scene),
-                                      "queries": views_key(scene.query)})
-        out_dir = self.folder = variant_dir(scene_dir, f"points-{conf.points}", self.stamp)
-        t = time.time()
-        self.map = pts.build_point_map(scene.mapping, out_dir, pconf, overwrite)
-        t_map = time.time() - t
-        q = pts.match_queries(scene.query, [v.name for v in scene.mapping], self.map["features"], out_dir, pconf,
-                              retrieval=rconf, overwrite=overwrite)
-        # the mapping side (SIFT, pairs, triangulation) and the query side (SIFT, retrieval, matching) apart
-        self.timings = {"point_map_s": t_map, "query_points_s": time.time() - t - t_map}
-        self.features, self.matches = self.map["features"], q["matches"]
-        self.retrieved = pairs_by_query(read_pairs(q["pairs"]))
-        self.model = ModelIndex(read_sfm(self.map["sfm"]), self.map["sfm"])
-        self._pts = pts
-
-    def matches_for(self, name: str):
-        return self._pts.point_matches_for_query(name, self.retrieved.get(name, []), self.features, self.matches, self.model)
-
-    def retrieved_for(self, name: str) -> list:
-        """The database images retrieved for query ``name``, best first."""
-        return list(self.retrieved.get(name, []))
-
-
-class HlocPoints:
-    """hloc's outputs for one scene: an SfM model, features, the query matches and the query pairs, chosen in hloc's
-    output tree by rule or given (:mod:`localization.hloc_outputs`), and checked against the scene."""
-
-    def __init__(self, hloc, scene):
-        from . import hloc_outputs as ho
-        from .hloc_io import ModelIndex, read_pairs, read_sfm
-
-        hloc = ho.as_hloc_outputs(hloc)
-        self.files = ho.find_hloc_files(hloc, scene)
-        self.sfm, self.features, self.matches = self.files.sfm, self.files.features, self.files.matches
-        self.pairs_file = self.files.pairs
-        self.pairs = read_pairs(self.pairs_file)
-        self.model = ModelIndex(read_sfm(self.sfm), self.sfm)
-        ho.check_model_features(self.model, self.features, self.sfm)
-        self.frame_gap_m = ho.check_world_frame(self.model, scene, self.sfm, _other_pose_sources(scene))
-        self.timings = {}
-        self.folder = hloc.scene_folder(scene.name)
-        self.info = {"hloc": self.files.to_json(), "frame_gap_cm": round(100 * self.frame_gap_m, 2)}
-        # hloc's files are the user's: their paths and sizes stand for their content
-        self.stamp = Stamp("points", {"hloc": [(str(Path(p).resolve()), Path(p).stat().st_size) for p in
-                                               (self.features, self.matches, self.pairs_file, _model_file(self.sfm))]})
-
-    def retrieved_for(self, name: str) -> list:
-        """The database images paired with query ``name`` in the pairs file, in file order."""
-        return [b for a, b in self.pairs if a == name]
-
-    def matches_for(self, name: str):
-        from .points import point_matches_from_hloc
-
-        return point_matches_from_hloc(name, self.sfm, self.features, self.matches, self.pairs, model=self.model,
-                                       pairs_name=self.pairs_file)
-
-
-def _model_file(sfm_dir: Path) -> Path:
-    """The file of a COLMAP model whose size stands for its 3D points (binary or text)."""
-    return next((sfm_dir / f for f in ("points3D.bin", "points3D.txt") if (sfm_dir / f).exists()), sfm_dir / "images.bin")
-
-
-def _other_pose_sources(scene) -> dict:
-    """{pose source: mapping views} of the scene under each other pose source that loads (for the frame message)."""
-    from lipmap.datasets import load_scene
-
-    out = {}
-    if scene.dataset != "7scenes":
-        return out
-    for source in ("posetxt", "dslam", "sfm"):
-        if source == scene.pose_source:
-            continue
-        try:
-            out[source] = load_scene(scene.dataset, Path(scene.root).parent, scene.name, pose_source=source).mapping
-        except InputError:
-            continue
-    return out
-
-
-# ----------------------------------------------------------------------------------------------
-# per-query localization
-# ----------------------------------------------------------------------------------------------
-def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: LocalizationConfig, cam_from_world_gt=None,
-                   trace: Optional[list] = None) -> dict:
-    """Point-only and point+line poses of one query of a benchmark run, from its point source. Never raises:
-    failures are recorded.
-
-    The point matches come from ``points.matches_for(name)``, limited to ``conf.max_point_matches`` (a seeded draw);
-    the rest is :func:`localize_matches`. ``trace`` (a list) also receives the point matches as
-    ``{"point_matches": pm}``.
-    """
-    rec = {"name": name, "point": {"success": False}, "point+line": {"success": False}}
-    t0 = time.perf_counter()
-    try:
-        pm = points.matches_for(name)
-    except InputError as e:
-        rec["error"] = str(e)
-        return rec
-    idx = subsample_matches(len(pm), conf.max_point_matches, conf.seed if conf.match_seed is None else conf.match_seed, name)
-    pm = pm.subset(idx)
-    if trace is not None:
-        trace.append({"point_matches": pm})
-    return localize_matches(pm, lines2d, camera, lq, conf, name, points, cam_from_world_gt, trace, t0)[0]
-
-
-def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfig, name: str = "query", points=None,
-                     cam_from_world_gt=None, trace: Optional[list] = None, t0: Optional[float] = None) -> tuple:
-    """Point-only and point+line poses of one query from its 2D-3D point matches and 2D lines: the one
-    implementation behind the benchmark loop (:func:`localize_query`) and the per-query API
-    (:class:`localization.api.Localizer`). Never raises for a bad query: failures are recorded.
-
-    Args:
-        pm: :class:`~localization.points.PointMatches` (p2d COLMAP pixels, p3d world).
-        lines2d: :math:`(L, 4)` query segments, COLMAP pixels.
-        points: the point source (for retrieved images' poses as rescue starts, ``LineRescueConfig.prior_views``).
-        cam_from_world_gt: with it, the line matches of the last refinement (and its PnPL line inliers) are checked
-            (:func:`~localization.linequery.correct_line_matches`) - after the timing, so the check costs nothing.
-        trace: a list receiving the line rescue's starts and their outcomes (:func:`rescue_pose`).
-        t0: ``time.perf_counter()`` when the query started (default: now); its times count from there.
-
-    Returns:
-        (record, detail): the journal record (``point`` and ``point+line`` dicts) and the arrays behind it,
-        ``point_inliers`` (N,) bool, ``point_line_inliers`` (N,) bool, ``line_matches`` (the line query's dict:
-        ``lines2d`` (M, 2, 2), ``lines3d`` (M, 2, 3), ``line_idx`` (M,)) and ``line_inliers`` (M,) bool.
-    """
-    t0 = time.perf_counter() if t0 is None else t0
-    rec = {"name": name, "point": {"success": False}, "point+line": {"success": False}}
-    detail = {"point_inliers": np.zeros(len(pm), bool), "point_line_inliers": np.zeros(len(pm), bool),
-              "line_matches": None, "line_inliers": np.zeros(0, bool)}
-    est = estimate_pose_points(pm.p2d, pm.p3d, camera, replace(conf.point_pose, seed=conf.seed))
-    t_point = (time.perf_counter() - t0) * 1000
-    rec["point"] = {"success": bool(est["success"]), "n_matches": len(pm), "n_inliers": int(est["n_inliers"]),
-                    "ms": t_point, "cam_from_world": _T(est["cam_from_world"] if est["success"] else None)}
-    if not est["success"]:
-        rec["point"]["reason"] = est.get("reason")
-    detail["point_inliers"] = np.asarray(est["inliers"], bool)
-    t1 = time.perf_counter()
-    T = est["cam_from_world"] if est["success"] else None
-    plconf = replace(conf.point_line_pose, seed=conf.seed)
-    rescue = conf.line_rescue
-    rescued = False
-    if rescue.weak_inliers > 0 and (T is None or est["n_inliers"] < rescue.weak_inliers):
-        priors = line_priors(name, est, points, rescue.prior_views)
-        if rescue.hypotheses.keep > 0:
-            hc = rescue.hypotheses
-            dirs = (lq.dominant_directions(hc.n_map_lines, hc.min_support, hc.map_directions, hc.direction_tol_deg)
-                    if hc.upright else None)
-            priors += line_verified_poses(pm.p2d, pm.p3d, lines2d, lq.scoring_lines(hc.n_map_lines, hc.min_support),
-                                          camera, hc, seed=conf.seed, directions=dirs)
-        r = rescue_pose(pm, lines2d, priors, lq, camera, conf, trace)
-        if r is not None:
-            T, rescued = r["cam_from_world"], True
-            plconf = replace(plconf, max_reproj_error=rescue.max_point_error)
-            detail["point_line_inliers"] = np.asarray(r["inliers"], bool)
-    t_rescue = (time.perf_counter() - t1) * 1000
-    if T is None:
-        why = "no point-only pose, and the line rescue found none" if rescue.weak_inliers > 0 else "no point-only pose to start from"
-        rec["point+line"] = {"success": False, "reason": why,
-                             "ms": t_point + (time.perf_counter() - t1) * 1000}
-        return rec, detail
-    if not rescued:
-        detail["point_line_inliers"] = detail["point_inliers"]
-    m, inliers, used_lines = None, None, False
-    visible = lq.visible_lines(T, camera, conf.line_query.occlusion_tol) if conf.line_query.method == "projection" else None
-    for lconf in line_query_schedule(conf):
-        tried = lq.match(lines2d, T, camera, lconf, visible)
-        r = estimate_pose_point_line(pm.p2d, pm.p3d, tried["lines2d"], tried["lines3d"], camera, initial=T, conf=plconf)
-        if r["success"] and conf.max_line_step and not _within(r["cam_from_world"], T, *conf.max_line_step):
-            r = {**r, "success": False}
-        if not r["success"]:
-            m = m or tried  # the matches the pose rests on: the last successful refinement's
-            break
-        T, m, inliers, used_lines = r["cam_from_world"], tried, r["line_inliers"], True
-        detail["point_line_inliers"] = np.asarray(r["inliers"], bool)
-    t_line = (time.perf_counter() - t1) * 1000
-    n_lm = len(m["line_idx"])
-    rec["point+line"] = {"success": True, "used_lines": used_lines, "rescued": rescued, "n_line_matches": n_lm,
-                         "n_line_inliers": int(inliers.sum()) if used_lines else 0,
-                         "n_query_lines": int(len(lines2d)), "ms": t_point + t_line, "line_stage_ms": t_line,
-                         "rescue_ms": t_rescue,
-                         "cam_from_world": _T(T)}
-    if cam_from_world_gt is not None and m is not None:
-        ok = correct_line_matches(m["lines2d"], m["lines3d"], cam_from_world_gt, camera)
-        rec["point+line"]["n_line_matches_correct"] = int(ok.sum())
-        rec["point+line"]["n_line_inliers_correct"] = int((ok & inliers).sum()) if used_lines else 0
-    detail["line_matches"] = m
-    detail["line_inliers"] = np.asarray(inliers, bool) if used_lines else np.zeros(n_lm, bool)
-    return rec, detail
-
-
-def line_priors(name: str, est: dict, points, k: int) -> list:
-    """Starting poses for a weak query's lines: its point-only pose (when finite) and the poses of its ``k`` best
-    retrieved database images (point sources that know them: ``retrieved_for`` and a ``model``)."""
-    priors = []
-    if est.get("cam_from_world") is not None and np.all(np.isfinite(est["cam_from_world"])):
-        priors.append(np.asarray(est["cam_from_world"], dtype=float))
-    retrieved = getattr(points, "retrieved_for", None)
-    model = getattr(points, "model", None)
-    if retrieved is not None and model is not None and k > 0:
-        for db in retrieved(name)[:k]:
-            if db in model:
-                priors.append(model.cam_from_world(db))
-    return priors
-
-
-def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: LocalizationConfig,
-                trace: Optional[list] = None) -> Optional[dict]:
-    """The best PnPL pose over ``priors`` with wide-gate line candidates (:class:`LineRescueConfig`), or None.
-
-    The refinement solver finds the map lines a start sees (the plane occlusion test) once per start: its narrower
-    stages move the pose by centimetres. RANSAC's pose may lie far from its start, and is tested anew.
-    ``trace`` (a list) receives one dict per start and stage: ``stage``, ``start`` and ``result`` (the solver's
-    dict), ``kept`` (whether it passed ``min_line_inliers``) and ``score``.
-    """
-    rc = conf.line_rescue
-    priors = distinct_poses(priors, rc.same_pose_m, rc.same_pose_deg)
-    lines2d = longest_lines(lines2d, rc.max_query_lines)
-    if rc.solver == "refine":
-        return _rescue_by_refinement(pm, lines2d, priors, lq, camera, conf, trace)
-    if rc.solver != "ransac":
-        raise ValueError(f"unknown line rescue solver {rc.solver!r} (ransac, refine)")
-    plconf = replace(conf.point_line_pose, seed=conf.seed, max_iterations=rc.max_iterations, max_reproj_error=rc.max_point_error,
-                     min_iterations=min(conf.point_line_pose.min_iterations, rc.max_iterations))
-    best, best_score = None, -1
-    for stage, gate in enumerate(rc.gates):
-        qconf = _rescue_query(conf, gate)
-        for T0 in (priors if stage == 0 else [best["cam_from_world"]] if best is not None else []):
-            m = lq.match(lines2d, T0, camera, qconf)
-            r = estimate_pose_point_line(pm.p2d, pm.p3d, m["lines2d"], m["lines3d"], camera, conf=plconf)
-            kept = r["success"] and r["n_line_inliers"] >= rc.min_line_inliers
-            score = r["n_inliers"] + r["n_line_inliers"] if kept else -1
-            if trace is not None:
-                trace.append({"stage": stage, "start": T0, "result": r, "kept": kept, "score": score})
-            if not kept:
-                continue
-            if score > best_score or stage > 0:  # a later stage refines the best pose with narrower gates
-                best, best_score = r, score
-    return best
-
-
-def longest_lines(lines2d: np.ndarray, k: int) -> np.ndarray:
-    """The ``k`` longest of the segments ``lines2d`` (N, 4), in their order (all when ``k`` is 0 or N <= k)."""
-    lines2d = np.asarray(lines2d, dtype=float).reshape(-1, 4)
-    if k <= 0 or len(lines2d) <= k:
-        return lines2d
-    return lines2d[np.sort(np.argsort(-geo.segment_lengths(lines2d), kind="stable")[:k])]
-
-
-def _rescue_query(conf: LocalizationConfig, gate) -> LineQueryConfig:
-    """The line query of one rescue stage, ``gate`` = (px, deg[, candidates])."""
-    rc = conf.line_rescue
-    px, deg, *k = gate
-    return replace(conf.line_query, method="projection", max_dist_px=float(px), max_angle_deg=float(deg),
-                   max_candidates=int(k[0]) if k else rc.candidates, min_margin=0.0, one_to_one=False,
-                   min_length_px=max(rc.min_length_px, conf.line_query.min_length_px))
-
-
-def _rescue_by_refinement(pm, lines2d, priors: list, lq: LineQuery, camera, conf: LocalizationConfig,
-                          trace: Optional[list] = None) -> Optional[dict]:
-    """``rescue_pose`` with ``solver="refine"``: every start through every stage, each a robust refinement."""
-    rc = conf.line_rescue
-    best, best_score = None, -1
-    for T in priors:
-        T0 = T
-        vis, r = lq.visible_lines(T, camera, conf.line_query.occlusion_tol), None
-        for gate in rc.refine_gates:
-            m = lq.match(lines2d, T, camera, _rescue_query(conf, gate), vis)
-            if len(m["line_idx"]) < conf.point_line_pose.min_lines:
-                r = None
-                break
-            r = refine_pose_point_line(pm.p2d, pm.p3d, m["lines2d"], m["lines3d"], camera, T,
-                                       point_scale=rc.max_point_error / 2, line_scale=rc.refine_scale * gate[0],
-                                       max_reproj_error=rc.max_point_error, max_line_error=conf.point_line_pose.max_line_error)
-            if not r["success"]:
-                break
-            T = r["cam_from_world"]
-        kept = r is not None and r["success"] and r["n_line_inliers"] >= rc.min_line_inliers
-        score = r["n_inliers"] + r["n_line_inliers"] if kept else -1
-        if trace is not None:
-            trace.append({"stage": 0, "start": T0, "result": r, "kept": kept, "score": score})
-        if not kept:
-            continue
-        if score > best_score:
-            best, best_score = r, score
-    return best
-
-
-def _within(U: np.ndarray, T: np.ndarray, max_m: float, max_deg: float) -> bool:
-    dt, dr = pose_errors(U, T)
-    return dt <= max_m and dr <= max_deg
-
-
-def distinct_poses(poses: list, max_m: float, max_deg: float) -> list:
-    """``poses`` without those within ``max_m`` and ``max_deg`` of an earlier one (the same start twice costs a RANSAC
-    and finds the same lines)."""
-    out = []
-    for T in poses:
-        if not any(_within(U, T, max_m, max_deg) for U in out):
-            out.append(T)
-    return out
-
-
-def line_query_schedule(conf: LocalizationConfig) -> list:
-    """The :class:`LineQueryConfig` of each query-and-refine iteration."""
-    if conf.line_gates:
-        return [replace(conf.line_query, max_dist_px=float(d), max_angle_deg=float(a)) for d, a in conf.line_gates]
-    return [conf.line_query] * max(1, conf.line_iters)
-
-
-def _T(T):
-    return None if T is None else np.asarray(T).tolist()
 
 
 def _read_journal(path: Path) -> dict:
@@ -498,7 +98,7 @@ class SceneJob:
         """The line query on the line map, reloaded from ``linemap.h5``."""
         from lipmap.linemap import LineMap
 
-        return _line_query(LineMap.load(self.out_dir / self.map_info["path"]), self.conf, self.map_info)
+        return make_line_query(LineMap.load(self.out_dir / self.map_info["path"]), self.conf, self.map_info["path"])
 
 
 def localize_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, lines_source=None, overwrite=False,
@@ -547,7 +147,7 @@ def prepare_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, lines
     linemap, map_info = scene_linemap(scene, out_dir, conf, lines_source, overwrite, checkpoint, linemap)
     t_map = time.time() - t0
     checkpoint("mapped")
-    lq = _line_query(linemap, conf, map_info)
+    lq = make_line_query(linemap, conf, map_info["path"])
     points = open_points(scene, out_dir, conf, hloc_dir, overwrite)
     qlines_h5 = query_lines_file(scene, out_dir, conf, overwrite)
     journal_path = out_dir / f"queries-{_journal_digest(scene, conf, map_info, points, qlines_h5)}.jsonl"
@@ -562,9 +162,8 @@ def prepare_scene(scene, out_dir, conf: LocalizationConfig, hloc_dir=None, lines
 
 
 def open_points(scene, out_dir: Path, conf: LocalizationConfig, hloc_dir=None, overwrite: bool = False):
-    """The scene's 2D-3D point source: hloc's files under ``hloc_dir/<scene>`` (a folder or
-    :class:`~localization.hloc_outputs.HlocOutputs`), else the built-in one (made or reused)."""
-    return HlocPoints(hloc_dir, scene) if hloc_dir else BuiltinPoints(scene, out_dir, conf, overwrite)
+    """The scene's point source (:func:`localization.points.open_points`) with the settings of ``conf``."""
+    return pts.open_points(scene, out_dir, conf.points, conf.retrieval, conf.num_retrieved, conf.seed, hloc_dir, overwrite)
 
 
 def finish_scene(job: SceneJob, done: dict) -> dict:
@@ -627,16 +226,6 @@ def given_linemap(scene, path: Path, out_dir: Path):
             "digest": stamp.digest if stamp is not None else _digest([str(path.resolve()), st.st_size, st.st_mtime_ns])}
     logger.info("Localizing %s against the line map %s (%d lines).", scene.name, path, len(lm))
     return lm, info
-
-
-def _line_query(linemap, conf: LocalizationConfig, map_info: dict) -> LineQuery:
-    lq = LineQuery.from_linemap(linemap)
-    if conf.line_query.method == "raycast" and len(linemap) and (lq.caster is None or lq.edge_line is None):
-        # otherwise every query fails alone with the same ValueError
-        raise InputError(f"the raycast line query needs a line map with planes; this one was made by "
-                         f"{linemap.metadata.get('method', '?')!r} and has none", map_info["path"],
-                         "use --line-query projection or --method lipmap")
-    return lq
 
 
 def query_lines_file(scene, out_dir: Path, conf: LocalizationConfig, overwrite: bool = False) -> Path:
@@ -798,6 +387,7 @@ def run_eval(dataset: str, root, scenes, out, conf: LocalizationConfig, hloc_dir
     """
     from lipmap.datasets import load_scene
 
+    check_config(conf)  # before any mapping: a bad number would otherwise fail every query one by one
     # absolute paths: a runner's workers may start elsewhere, and the paths in messages are the same either way
     root, out = Path(root).resolve(), Path(out).resolve() / dataset
     hloc_dir = as_hloc_outputs(hloc_dir)
@@ -825,7 +415,7 @@ def run_eval(dataset: str, root, scenes, out, conf: LocalizationConfig, hloc_dir
     write_text_atomic(path, json.dumps(all_res, indent=1, default=float))
     notes = [f"Mapping: {conf.map_method} ({conf.mapping} preset); points: "
              + ("hloc files" if hloc_dir else f"built-in {conf.points} + {conf.retrieval} top-{conf.num_retrieved}")
-             + (f"; point matches limited to {conf.max_point_matches} per query (seed {conf.seed})" if conf.max_point_matches else ""),
+             + (f"; point matches limited to {conf.max_point_matches} per query (seed {conf.seed if conf.match_seed is None else conf.match_seed})" if conf.max_point_matches is not None else ""),
              f"Line query: {conf.line_query.method}, "
              + (f"map lines seen in at least {conf.line_query.min_support} mapping image(s) by the track test"
                 if conf.line_query.min_support else "every map line")]

@@ -33,7 +33,7 @@ from . import evaluate as ev
 # the run's reading lives in report_run (shared with report.html); its public names stay importable from here
 from .report_run import (COLORS, KEYS, LABELS, OVERVIEW_CELLS, PROVENANCE, R_THRESH_DEG, T_THRESH_CM, SceneAssets,
                          SceneRun, _num, _plural, cdf_label, cdf_range, cdf_steps, fmt_err, load_scene_run, overview_rows,
-                         query_lines_file, select_examples, slug)
+                         query_lines_file, select_examples, examples_note, slug)
 
 BEGIN, END = "<!-- lipmap-report:begin -->", "<!-- lipmap-report:end -->"
 HTML_NAME = "report.html"  # OUT/<dataset>/report.html, beside summary.md
@@ -183,7 +183,12 @@ def plot_query_overlay(run: SceneRun, query: str, view, linemap, out_png, line_q
     panels = []
     support = linemap.supports[:, 0] if len(linemap) else np.zeros(0, int)
     for key in KEYS:
-        T = run.poses[query][key]
+        T = run.poses.get(query, {}).get(key)
+        r = rec.get(key, {})
+        if T is None:  # this method found no pose: nothing to project
+            why = r.get("reason") or "failed"
+            panels.append((f"{LABELS[key]}: no pose ({why})", np.zeros((0, 2, 2)), "map lines: no pose to project with"))
+            continue
         idx = viz.visible_line_indices(linemap.lines, T, cam, depth=depth, line_query=line_query)
         segs, ok = viz.project_to_image(linemap.lines[idx], T, cam)
         idx, segs = idx[ok], segs[ok]
@@ -196,7 +201,6 @@ def plot_query_overlay(run: SceneRun, query: str, view, linemap, out_png, line_q
         if capped:
             keep = keep[np.lexsort((-length[keep], -support[idx[keep]]))[:max_lines]]
         segs = segs[keep]
-        r = rec.get(key, {})
         title = f"{LABELS[key]} pose: {_num(r.get('t_cm')):.1f} cm, {_num(r.get('R_deg')):.2f}°"
         if key == "point+line" and "n_line_inliers" in r:
             title += f"  ({r['n_line_inliers']}/{r.get('n_line_matches', '?')} line inliers)"
@@ -253,6 +257,10 @@ def detect_dataset(out_root) -> tuple[Path, str]:
     raise InputError(f"several datasets here ({', '.join(found)})", out_root, hint="pass --dataset")
 
 
+# the figures write_report makes (report/ holds nothing else of ours)
+GENERATED_PNG = ("accuracy_", "cdf_", "query_", "linemap_", "planes_")
+
+
 def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples: int = 3) -> Path:
     """Write OUT/<dataset>/report/ (PNGs + report.md) and OUT/<dataset>/report.html (one self-contained
     page with interactive plots and 3D views) from a finished run; returns report.md.
@@ -270,6 +278,9 @@ def write_report(out_root, dataset: Optional[str] = None, root=None, n_examples:
         raise InputError("no results for this dataset here (run `lipmap-loc eval` first)", out)
     rep = out / "report"
     rep.mkdir(parents=True, exist_ok=True)
+    for old in rep.glob("*.png"):  # the figures are this run's: an earlier run's overlays must not stay beside them
+        if old.name.startswith(GENERATED_PNG):
+            old.unlink()
     all_res, runs = _load_runs(out)
     summaries = {n: all_res.get("scenes", {}).get(n) or r.results.get("summary", {}) for n, r in runs.items()}
     n_q = {n: len(r.queries) for n, r in runs.items()}
@@ -420,8 +431,10 @@ def _query_examples_md(n: str, r: SceneRun, lm, scene, rep: Path, n_examples: in
     from lipmap import viz
 
     ex = select_examples(r, n_examples)
+    why = examples_note(r, ex)
+    if why:
+        notes.append(f"{n}: {why}.")
     if not ex:
-        notes.append(f"{n}: no query has both a point-only and a point+line pose; no overlays.")
         return []
     lq = None
     if viz.linemap_corners(lm, r.map_path.parent) is not None:
@@ -481,13 +494,15 @@ def _refresh_summary_links(summary: Path, rep: Path, bars: Path, cdfs: dict):
 # ----------------------------------------------------------------------------------------------
 def add_report_parser(subparsers):
     """`lipmap-loc report OUT [--dataset D] [--root ROOT] [--examples N]`."""
+    from lipmap.cliargs import int_at_least
+
     p = subparsers.add_parser("report", help="plots, report.md and an interactive report.html (3D line maps, planes, "
                                              "poses) from a finished eval run (no pose is recomputed)")
     p.add_argument("out", type=Path, help="the --out folder of `lipmap-loc eval` (holds <dataset>/results.json)")
     p.add_argument("--dataset", default=None, choices=["7scenes", "synthetic"], help="default: the only dataset under OUT")
     p.add_argument("--root", type=Path, default=None,
                    help="dataset root for the query and mapping images (default: from results.json, or OUT/synthetic-data)")
-    p.add_argument("--examples", type=int, default=3, help="query overlays per kind (improved, worst)")
+    p.add_argument("--examples", type=int_at_least(0), default=3, help="query overlays per kind (improved, worst)")
     p.set_defaults(func=cli_report)
     return p
 

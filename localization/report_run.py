@@ -121,7 +121,8 @@ def query_lines_file(run: SceneRun) -> Path:
 def select_examples(run: SceneRun, n: int = 3, good_cm: float = 5.0) -> list[tuple[str, int, str]]:
     """The ``n`` largest translation improvements of point+line over point-only, first among the queries that
     point+line puts within ``good_cm`` (else the largest are rescues of queries that fail either way, 5 m -> 1.4 m),
-    then the ``n`` largest point+line translation errors among the rest; only queries with both poses.
+    from the queries with both poses; then the ``n`` largest point+line translation errors among the rest of the
+    queries with a point+line pose (a point-only pose may be missing: lines may be all there is).
 
     Returns:
         ``[(kind, rank, query)]`` with kind "improved" or "worst", rank from 1.
@@ -130,12 +131,28 @@ def select_examples(run: SceneRun, n: int = 3, good_cm: float = 5.0) -> list[tup
     for q, rec in run.queries.items():
         p = run.poses.get(q, {})
         tp, tl = _num(rec.get("point", {}).get("t_cm")), _num(rec.get("point+line", {}).get("t_cm"))
-        if p.get("point") is not None and p.get("point+line") is not None and math.isfinite(tp) and math.isfinite(tl):
-            cand.append((q, tp, tl))
-    improved = [c for c in sorted(cand, key=lambda c: (c[2] > good_cm, c[2] - c[1])) if c[1] > c[2]][:n]
+        if p.get("point+line") is not None and math.isfinite(tl):
+            cand.append((q, tp if p.get("point") is not None else math.inf, tl))
+    both = [c for c in cand if math.isfinite(c[1])]
+    improved = [c for c in sorted(both, key=lambda c: (c[2] > good_cm, c[2] - c[1])) if c[1] > c[2]][:n]
     taken = {c[0] for c in improved}
     worst = sorted((c for c in cand if c[0] not in taken), key=lambda c: -c[2])[:n]
     return [("improved", i + 1, c[0]) for i, c in enumerate(improved)] + [("worst", i + 1, c[0]) for i, c in enumerate(worst)]
+
+
+def examples_note(run: SceneRun, examples: list) -> Optional[str]:
+    """Why a scene's examples lack the improvements (or all examples), or None when nothing is missing."""
+    n_pl = sum(1 for q in run.queries if run.poses.get(q, {}).get("point+line") is not None)
+    n_pt = sum(1 for q in run.queries if run.poses.get(q, {}).get("point") is not None)
+    if not examples:
+        return "no query has a point+line pose, so there is no example to show" if not n_pl else \
+            "no query has a finite point+line error, so there is no example to show"
+    if any(kind == "improved" for kind, _, _ in examples):
+        return None
+    if not n_pt:
+        return (f"every point-only pose failed ({len(run.queries)} of {len(run.queries)} queries), so there is no "
+                "improvement to compare against: only the largest point+line errors are shown")
+    return "no query's translation error improved with lines: only the largest point+line errors are shown"
 
 
 # ----------------------------------------------------------------------------------------------

@@ -20,7 +20,8 @@ from typing import Callable, Optional
 from lipmap import InputError, logger
 
 from .hloc_outputs import as_hloc_outputs
-from .pipeline import (LocalizationConfig, finish_scene, journal_records, localize_chunk, pending_queries, prepare_scene,
+from .config import LocalizationConfig
+from .pipeline import (finish_scene, journal_records, localize_chunk, pending_queries, prepare_scene,
                        resume_scene)
 
 INSTALL_HINT = 'pip install "lipmap[ray]"'

@@ -12,7 +12,7 @@ import numpy as np
 from lipmap.linemap import LineMap
 from lipmap.poses import invert_T, make_T
 from lipmap.testing import rect
-from localization.pipeline import LocalizationConfig
+from localization.config import LocalizationConfig
 from localization.report_run import KEYS
 
 W, H, F = 96, 72, 70.0

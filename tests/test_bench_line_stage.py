@@ -7,7 +7,8 @@ from conftest import benchmark_module
 from test_line_rescue import CAM, _scene
 
 from localization.linequery import LineQuery
-from localization.pipeline import LineRescueConfig, LocalizationConfig, localize_query
+from localization.config import LineRescueConfig, LocalizationConfig
+from localization.query import localize_query
 
 
 def _bench():
@@ -24,7 +25,7 @@ class _Points:
 
 @pytest.mark.parametrize("solver", ["ransac", "refine"])
 def test_parts_add_up_to_at_most_the_line_stage(solver):
-    import localization.pipeline as P
+    import localization.query as P
 
     bench = _bench()
     T, ends, l2, pm = _scene(2, n_pts=6)
@@ -32,14 +33,14 @@ def test_parts_add_up_to_at_most_the_line_stage(solver):
     rescue = LineRescueConfig(weak_inliers=12, solver=solver, gates=((30, 5, 1), (15, 3, 1)),
                               hypotheses=replace(LineRescueConfig().hypotheses, box_margin=5.0))
     conf = replace(LocalizationConfig(), line_rescue=rescue)
-    originals = (P.rescue_pose, P.estimate_pose_point_line, lq.match, lq.visible_lines)
+    originals = (P.rescue_pose, P.pnpl_pose, lq.match, lq.visible_lines)
     timer = bench.PartTimer(lq)
     try:
         rec = localize_query("q", CAM, _Points(pm), l2, lq, conf)
         parts = timer.take()
     finally:
         timer.restore()
-    assert (P.rescue_pose, P.estimate_pose_point_line, lq.match, lq.visible_lines) == originals
+    assert (P.rescue_pose, P.pnpl_pose, lq.match, lq.visible_lines) == originals
     pl = rec["point+line"]
     assert pl["rescued"]
     assert {"hypotheses", "rescue query", "rescue PnPL", "visibility", "narrow query", "narrow PnPL"} <= set(parts)

@@ -3,7 +3,7 @@ from scipy.spatial.transform import Rotation
 
 from lipmap.poses import make_T, pose_errors
 from lipmap.scene import Camera
-from localization.estimate import PointLinePoseConfig, estimate_pose_point_line, estimate_pose_points
+from localization.estimate import PointLinePoseConfig, pnpl_pose, estimate_pose_points
 
 CAM = Camera(640, 480, (525, 525, 320, 240))
 
@@ -36,7 +36,7 @@ def test_lines_improve_a_few_noisy_points():
     for seed in range(8):
         T, x, X, l2, l3 = _scene(seed)
         pt = estimate_pose_points(x, X, CAM)
-        pl = estimate_pose_point_line(x, X, l2, l3, CAM, initial=pt["cam_from_world"], conf=PointLinePoseConfig())
+        pl = pnpl_pose(x, X, l2, l3, CAM, initial=pt["cam_from_world"], conf=PointLinePoseConfig())
         assert pl["success"] and pl["n_line_inliers"] >= 30
         gains.append(pose_errors(T, pt["cam_from_world"])[0] - pose_errors(T, pl["cam_from_world"])[0])
         assert pose_errors(T, pl["cam_from_world"])[0] < 0.01
@@ -47,12 +47,12 @@ def test_outlier_lines_are_rejected():
     T, x, X, l2, l3 = _scene(3, n_pts=20)
     l3_bad = l3.copy()
     l3_bad[:10] += np.random.default_rng(0).normal(0, 0.5, (10, 2, 3))  # 10 of 40 wrong matches
-    pl = estimate_pose_point_line(x, X, l2, l3_bad, CAM)
+    pl = pnpl_pose(x, X, l2, l3_bad, CAM)
     assert pose_errors(T, pl["cam_from_world"])[0] < 0.01
     assert pl["line_inliers"][:10].sum() <= 1 and pl["line_inliers"][10:].mean() > 0.9
 
 
 def test_too_few_lines_falls_back():
     T, x, X, l2, l3 = _scene(1)
-    out = estimate_pose_point_line(x, X, l2[:2], l3[:2], CAM)
+    out = pnpl_pose(x, X, l2[:2], l3[:2], CAM)
     assert not out["success"] and "line matches" in out["reason"]

@@ -297,7 +297,7 @@ def test_eval_on_files_hloc_wrote(hloc_written, tmp_path):
 
 def test_hlocs_sfm_sift_is_refused_with_the_reason(hloc_written, tmp_path):
     scene = load_scene("synthetic", hloc_written["data"], "room-s0")
-    from localization.pipeline import HlocPoints
+    from localization.points import HlocPoints
 
     with pytest.raises(InputError, match=r"sfm_sift: cannot read the COLMAP model.*hloc's sfm_sift"):
         HlocPoints(HlocOutputs(hloc_written["outputs"], sfm="sfm_sift"), scene)

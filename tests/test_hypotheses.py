@@ -106,7 +106,7 @@ def test_upright_poses_are_skipped_when_a_p3p_pose_explains_enough_matches(monke
 
 
 def test_rescue_takes_the_longest_query_lines():
-    from localization.pipeline import longest_lines
+    from localization.query import longest_lines
 
     lines = np.array([[0, 0, 10, 0], [0, 0, 50, 0], [0, 0, 30, 0], [0, 0, 40, 0]], float)
     assert np.array_equal(longest_lines(lines, 2), lines[[1, 3]])  # kept in their order

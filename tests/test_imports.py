@@ -116,3 +116,18 @@ def test_production_code_does_not_import_the_test_helpers():
 
 def test_hloc_io_depends_on_nothing_of_localization():
     assert not {d for d in import_graph()["localization.hloc_io"] if d.startswith("localization")}
+
+
+def test_the_per_query_api_uses_public_names_only():
+    """localization.api is what users copy from: it imports no ``_private`` name of the package."""
+    tree = ast.parse((REPO / "localization" / "api.py").read_text())
+    private = [f"{n.module}.{a.name}" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)
+               for a in n.names if a.name.startswith("_")]
+    assert not private, private
+
+
+def test_every_localization_module_is_one_readable_file():
+    """No module of localization/ over 700 lines: the per-query core, the scene loop and the point sources apart."""
+    long = {f.relative_to(REPO).as_posix(): n for f in (REPO / "localization").rglob("*.py")
+            if (n := len(f.read_text().splitlines())) > 700}
+    assert not long, long

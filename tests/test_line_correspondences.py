@@ -9,7 +9,9 @@ from lipmap.mapping.assign import corner_edges
 from lipmap.poses import make_T
 from lipmap.testing import SMALL_CAMERA, wall_scene
 from localization.linequery import LineQuery, LineQueryConfig, correct_line_matches
-from localization.pipeline import LocalizationConfig, line_match_stats, line_query_schedule
+from localization.config import LocalizationConfig
+from localization.pipeline import line_match_stats
+from localization.query import line_query_schedule
 
 
 def test_a_match_is_correct_within_2_px_and_1_degree_under_the_ground_truth():

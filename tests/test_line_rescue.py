@@ -8,7 +8,8 @@ from scipy.spatial.transform import Rotation
 from lipmap.poses import make_T, pose_errors
 from lipmap.scene import Camera
 from localization.linequery import LineQuery, LineQueryConfig
-from localization.pipeline import LineRescueConfig, LocalizationConfig, line_priors, localize_query, rescue_pose
+from localization.config import LineRescueConfig, LocalizationConfig
+from localization.query import localize_query, rescue_pose, retrieved_poses
 from localization.points import PointMatches
 
 CAM = Camera(640, 480, (525, 525, 320, 240))
@@ -97,7 +98,7 @@ def test_localize_query_rescues_a_query_with_too_few_points():
     # the lines stand 2-4 m in front of this camera, so its hypotheses lie outside their box + 0.5 m: only the
     # retrieved images' poses can start the lines
     conf = replace(LocalizationConfig(), line_rescue=LineRescueConfig(weak_inliers=12, prior_views=2))
-    assert [p.tolist() for p in line_priors("q", {"cam_from_world": None}, points, 2)] == \
+    assert [p.tolist() for p in retrieved_poses("q", points, 2)] == \
         [points.model.cam_from_world("db1").tolist(), points.model.cam_from_world("db2").tolist()]
     rec = localize_query("q", CAM, points, l2, lq, conf, cam_from_world_gt=T)
     pl = rec["point+line"]
@@ -164,7 +165,7 @@ def test_line_evidence_masks_hold_the_pixels_near_detections():
 
 
 def test_rescue_starts_near_an_earlier_one_are_skipped():
-    from localization.pipeline import distinct_poses
+    from localization.query import distinct_poses
 
     T, *_ = _scene(4)
     starts = [T, _off(T, 6, 2), _off(T, 30, 2), _off(T, 4, 8), _off(T, 31, 2.5)]
@@ -191,7 +192,7 @@ def test_each_rescue_stage_takes_its_own_number_of_candidates():
 
 
 def test_robust_refinement_ignores_outlying_lines_and_counts_inliers():
-    from localization.estimate import refine_pose_point_line
+    from localization.estimate import refine_pnpl_pose
 
     T, ends, l2, pm = _scene(6, n_lines=40, n_pts=6)
     bad = l2.copy()
@@ -200,12 +201,12 @@ def test_robust_refinement_ignores_outlying_lines_and_counts_inliers():
     bad[:10] += 15 * np.tile(nrm, 2)  # 10 lines moved 15 px off, across their direction
     start = _off(T, 3, 1)
     args = (pm.p2d, pm.p3d, bad.reshape(-1, 2, 2), ends, CAM, start)
-    r = refine_pose_point_line(*args, point_scale=3.0, line_scale=3.0, max_reproj_error=6.0, max_line_error=2.0)
+    r = refine_pnpl_pose(*args, point_scale=3.0, line_scale=3.0, max_reproj_error=6.0, max_line_error=2.0)
     dt, dr = pose_errors(T, r["cam_from_world"])
     assert r["success"] and dt < 0.003 and dr < 0.1
     assert r["n_inliers"] == 6 and not r["line_inliers"][:10].any() and r["line_inliers"][10:].mean() > 0.9
     # the scales are pixels: at 100 px the outliers pull the pose
-    loose = refine_pose_point_line(*args, point_scale=100.0, line_scale=100.0, max_reproj_error=6.0, max_line_error=2.0)
+    loose = refine_pnpl_pose(*args, point_scale=100.0, line_scale=100.0, max_reproj_error=6.0, max_line_error=2.0)
     assert pose_errors(T, loose["cam_from_world"])[0] > 3 * dt
 
 
@@ -259,12 +260,12 @@ def test_coarse_scoring_pass_keeps_the_best_hypothesis_and_narrows_the_second_pa
 def test_a_narrowing_round_that_jumps_beyond_max_line_step_is_not_taken(monkeypatch):
     """The narrowing rounds refine a pose: a RANSAC solution far from the round's start is refused, and the query
     keeps the pose of the last round that stayed within the step (here the point-only pose)."""
-    import localization.pipeline as P
+    import localization.query as P
 
     T, ends, l2, pm = _scene(2, n_pts=30)
     points = _Points(pm, _Model({}))
     lq = LineQuery(ends)
-    real = P.estimate_pose_point_line
+    real = P.pnpl_pose
     calls = []
 
     def jumping(*a, **k):  # the first round's RANSAC lands 1 m away with every line "inlier"
@@ -274,7 +275,7 @@ def test_a_narrowing_round_that_jumps_beyond_max_line_step_is_not_taken(monkeypa
         calls.append(r)
         return r
 
-    monkeypatch.setattr(P, "estimate_pose_point_line", jumping)
+    monkeypatch.setattr(P, "pnpl_pose", jumping)
     free = localize_query("q", CAM, points, l2, lq, LocalizationConfig(max_line_step=()))
     assert pose_errors(T, np.array(free["point+line"]["cam_from_world"]))[0] > 0.5  # the jump is taken, never undone
     calls.clear()

@@ -261,7 +261,8 @@ class TestCommandLine:
 
     def test_run_eval_passes_the_folder_to_the_loader(self, monkeypatch, tmp_path):
         import lipmap.datasets
-        from localization.pipeline import LocalizationConfig, run_eval
+        from localization.config import LocalizationConfig
+        from localization.pipeline import run_eval
 
         seen = {}
 

@@ -12,7 +12,8 @@ from lipmap import InputError
 from lipmap.datasets.synthetic import SynthConfig, generate_scene
 from dataclasses import replace
 
-from localization.pipeline import LocalizationConfig, run_eval
+from localization.config import LocalizationConfig
+from localization.pipeline import run_eval
 
 MINI = SynthConfig("mini", 240, 180, 196.875, 196.875, 120.0, 90.0, n_mapping=16, n_query=6, texels_per_m=200.0)
 CONF = LocalizationConfig(points="sift-n2048", map_method="lift", num_retrieved=5)

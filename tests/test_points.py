@@ -281,7 +281,7 @@ class TestTriangulation:
 
 def _localize(scene_mapping, scene_query, out, conf, retrieval_conf=None):
     from localization.estimate import estimate_pose_points
-    from localization.retrieval import retrieval_recall
+    from localization.points.retrieval import retrieval_recall
 
     t = time.time()
     built = points.build_point_map(scene_mapping, out, conf)
@@ -304,7 +304,7 @@ def _localize(scene_mapping, scene_query, out, conf, retrieval_conf=None):
 def test_redkitchen_subset(redkitchen_root, tmp_path):
     """15 mapping + 5 queries at 1024 keypoints: most queries within 5 cm / 2 deg."""
     from lipmap.datasets import load_scene
-    from localization.retrieval import RetrievalConfig
+    from localization.points.retrieval import RetrievalConfig
 
     scene = load_scene("7scenes", redkitchen_root, "redkitchen")
     mapping = scene.mapping[:45:3]  # frames 0, 30, ..., 420

@@ -6,9 +6,12 @@ import h5py
 import numpy as np
 import pytest
 
+from lipmap.artifacts import STAMP_ATTR
+from lipmap.errors import InputError
 from lipmap.imageio import write_color
 from lipmap.scene import Camera, View
-from localization import points
+from localization import hloc_io, points
+from localization.points import features as pfeatures, matching as pmatching, pairs as ppairs
 from localization.points import SiftConfig, extract_sift
 
 
@@ -47,7 +50,7 @@ class TestParallelSift:
             np.testing.assert_array_equal(d0[k], d1[k], err_msg=k)
         with h5py.File(seq, "r") as a, h5py.File(par, "r") as b:
             assert list(a["seq"]) == list(b["seq"])  # creation order kept
-            assert a.attrs[points.STAMP_ATTR] == b.attrs[points.STAMP_ATTR]
+            assert a.attrs[STAMP_ATTR] == b.attrs[STAMP_ATTR]
         for v in views:  # and both equal SIFT on each image alone (the former loop)
             f = points.sift_features(v.load_color(gray=True), conf)
             np.testing.assert_array_equal(d1[f"{v.name}/descriptors"], f["descriptors"].astype(np.float16).T)
@@ -56,35 +59,35 @@ class TestParallelSift:
     def test_device_selection(self, monkeypatch):
         import pycolmap
 
-        assert points.sift_device("cpu") == "cpu"
+        assert pfeatures.sift_device("cpu") == "cpu"
         monkeypatch.setattr(pycolmap, "has_cuda", False, raising=False)
-        assert points.sift_device("auto") == "cpu"
-        with pytest.raises(points.InputError):
-            points.sift_device("cuda")
-        with pytest.raises(points.InputError):
-            points.sift_device("tpu")
+        assert pfeatures.sift_device("auto") == "cpu"
+        with pytest.raises(InputError):
+            pfeatures.sift_device("cuda")
+        with pytest.raises(InputError):
+            pfeatures.sift_device("tpu")
         monkeypatch.setattr(pycolmap, "has_cuda", True, raising=False)
         monkeypatch.setattr(pycolmap, "get_num_cuda_devices", lambda: 1, raising=False)
-        assert points.sift_device("auto") == "cuda"
+        assert pfeatures.sift_device("auto") == "cuda"
         monkeypatch.setattr(pycolmap, "get_num_cuda_devices", lambda: 0, raising=False)
-        assert points.sift_device("auto") == "cpu"
+        assert pfeatures.sift_device("auto") == "cpu"
 
     def test_cuda_extractor_requested(self, tmp_path, monkeypatch):
         """On a CUDA pycolmap the extractor is created on Device.cuda and the stamp names the device."""
         made = []
-        real = points._sift_extractor
+        real = pfeatures._sift_extractor
 
         def fake(conf, device="cpu"):
             made.append(device)
             return real(conf, "cpu")
 
-        monkeypatch.setattr(points, "_sift_extractor", fake)
-        monkeypatch.setattr(points, "sift_device", lambda device="auto": "cuda")
+        monkeypatch.setattr(pfeatures, "_sift_extractor", fake)
+        monkeypatch.setattr(pfeatures, "sift_device", lambda device="auto": "cuda")
         views = texture_views(tmp_path, 2)
         out = extract_sift(views, tmp_path / "f.h5", SiftConfig(max_keypoints=100, first_octave=0))
         assert made == ["cuda"]
         with h5py.File(out, "r") as fd:
-            assert "cuda" in fd.attrs[points.STAMP_ATTR]
+            assert "cuda" in fd.attrs[STAMP_ATTR]
 
 
 def trajectory_views(n, seed=0, length=60.0, cam=Camera(640, 480, (525.0, 525.0, 320.0, 240.0))):
@@ -120,7 +123,7 @@ class TestPairsFromPoses:
     def test_equals_dense(self, n, length, conf):
         views = trajectory_views(n, seed=n, length=length)
         got = points.pairs_from_poses(views, conf=conf)
-        ref = points._pairs_from_poses_dense(views, conf)
+        ref = ppairs._pairs_from_poses_dense(views, conf)
         assert len(ref) > n
         assert got == ref
 
@@ -128,11 +131,11 @@ class TestPairsFromPoses:
         """On a 300 m walk the exact test runs on ~N x (views within reach), not N^2 pairs."""
         views = trajectory_views(1500, length=300.0)
         conf = points.PairsConfig()
-        n_cand = sum(len(I) for I, _ in points._candidate_pairs(views, points._view_samples(views, conf), conf))
+        n_cand = sum(len(I) for I, _ in ppairs._candidate_pairs(views, ppairs._view_samples(views, conf), conf))
         assert n_cand < 1500 * 1499 / 2 / 10, n_cand
         # the candidates hold every pair the exact test keeps, on a window checked densely
         sub = views[:300]
-        assert points.pairs_from_poses(sub, conf=conf) == points._pairs_from_poses_dense(sub, conf)
+        assert points.pairs_from_poses(sub, conf=conf) == ppairs._pairs_from_poses_dense(sub, conf)
 
 
 class TestMatching:
@@ -147,15 +150,15 @@ class TestMatching:
                  for i in range(12) for j in range(i + 1, 12) if rng.random() < 0.6]
         pairs = [pairs[k] for k in rng.permutation(len(pairs))]
         reads = []
-        real = points.hloc_io.read_features
-        monkeypatch.setattr(points.hloc_io, "read_features", lambda p, n: reads.append(n) or real(p, n))
+        real = hloc_io.read_features
+        monkeypatch.setattr(hloc_io, "read_features", lambda p, n: reads.append(n) or real(p, n))
         out = points.match_features(pairs, feats, tmp_path / "m.h5", chunk=5, block=3)
         n_blocks = 4
         assert max(reads.count(n) for n in names) <= 2 * n_blocks
         assert len(reads) < len(pairs)  # the former FIFO-in-pair-order reads ~2 per pair at this cache size
         for a, b in pairs:
             m, s = hloc_io_matches(out, a, b)
-            da, db = (points._DescriptorCache(feats)(n) for n in (a, b))
+            da, db = (pmatching._DescriptorCache(feats)(n) for n in (a, b))
             m_ref, s_ref = points.mutual_nn_ratio(da, db)
             np.testing.assert_array_equal(m, m_ref)
             np.testing.assert_array_equal(s, s_ref)
@@ -163,13 +166,13 @@ class TestMatching:
     def test_cache_bounded(self, tmp_path):
         views = texture_views(tmp_path, 5, seed=1)
         feats = extract_sift(views, tmp_path / "f.h5", SiftConfig(max_keypoints=200, first_octave=0), workers=1)
-        cache = points._DescriptorCache(feats, max_items=3, max_bytes=10**9)
+        cache = pmatching._DescriptorCache(feats, max_items=3, max_bytes=10**9)
         for v in views + views[::-1]:
             cache(v.name)
             assert len(cache.items) <= 3
         assert cache.reads == 5 + 2  # the last three read are still there on the way back
         one = cache(views[0].name).nbytes
-        small = points._DescriptorCache(feats, max_items=100, max_bytes=int(2.5 * one))
+        small = pmatching._DescriptorCache(feats, max_items=100, max_bytes=int(2.5 * one))
         for v in views:
             small(v.name)
         assert small.nbytes <= 2.5 * one and len(small.items) <= 2
@@ -191,7 +194,7 @@ class TestRetrieval:
         """Blocked partial ranking = the former full sort, ties included. Small integer descriptors
         make every similarity exact: a block's matmul may round differently from the full one's,
         which can swap scores within an ulp of each other on real descriptors."""
-        from localization.retrieval import _top_k_full_sort, top_k
+        from localization.points.retrieval import _top_k_full_sort, top_k
 
         rng = np.random.default_rng(k)
         q = rng.integers(-3, 4, size=(53, 8)).astype(np.float32)

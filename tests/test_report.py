@@ -9,7 +9,7 @@ import pytest
 from fake_run import Q0, Q1, make_fake_run
 
 from localization import report as rp
-from localization.pipeline import LocalizationConfig
+from localization.config import LocalizationConfig
 
 
 @pytest.fixture()
@@ -92,3 +92,29 @@ def test_report_without_dataset_root_and_cli(fake_run, capsys):
     assert 'id="scene3d-chess"' in page and "queries: ground truth" not in page  # estimates only, no GT
     with pytest.raises(rp.InputError):
         rp.write_report(out / "nothing-here", None)
+
+
+def test_a_report_holds_only_its_own_runs_pictures(fake_run):
+    """Two runs into one OUT: the second, whose point-only poses all failed, leaves none of the first run's overlays,
+    says why it shows no improvement, and still shows its largest point+line errors."""
+    import json
+
+    out, root = fake_run["out"], fake_run["root"]
+    rep = out / "7scenes" / "report"
+    rp.write_report(out, "7scenes", root=root)
+    assert (rep / "query_chess_improved1.png").exists()
+    chess = out / "7scenes" / "chess"
+    res = json.loads((chess / "results.json").read_text())
+    journal = chess / res["journal"]
+    lines = [json.loads(x) for x in journal.read_text().splitlines()]
+    for rec in lines:
+        rec["point"] = {"success": False, "reason": "2 matches < 4"}
+    journal.write_text("".join(json.dumps(r) + "\n" for r in lines))
+    for q in res["queries"].values():
+        q["point"] = {"t_cm": None, "R_deg": None, "success": False}
+    (chess / "results.json").write_text(json.dumps(res))
+    text = rp.write_report(out, "7scenes", root=root).read_text()
+    assert not (rep / "query_chess_improved1.png").exists() and "improved1" not in text
+    assert "chess: every point-only pose failed (2 of 2 queries), so there is no improvement to compare against" in text
+    assert {p.name for p in rep.glob("query_chess_*.png")} == {"query_chess_worst1.png", "query_chess_worst2.png"}
+    assert f"| largest point+line error #1 | `{Q1}` | failed | 4.0 cm / 0.10° |" in text

@@ -9,7 +9,8 @@ from test_line_rescue import CAM, _Model, _off, _Points, _scene
 
 from lipmap.poses import pose_errors
 from localization.linequery import LineQuery
-from localization.pipeline import LineRescueConfig, LocalizationConfig, localize_query
+from localization.config import LineRescueConfig, LocalizationConfig
+from localization.query import localize_query
 
 
 def _bench():

@@ -8,7 +8,7 @@ import pytest
 from lipmap.errors import InputError
 from lipmap.poses import make_T
 from localization import hloc_io
-from localization.retrieval import (
+from localization.points.retrieval import (
     RetrievalConfig,
     global_descriptor,
     pairs_from_retrieval,

@@ -28,7 +28,8 @@ from lipmap.datasets.validate import check_scene
 from lipmap.linemap import LineMap
 from lipmap.lines2d import detect_lines_image, load_lines
 from localization.linequery import LineQueryConfig
-from localization.pipeline import LineRescueConfig, run_eval
+from localization.config import LineRescueConfig
+from localization.pipeline import run_eval
 
 from test_pipeline import CONF, MINI, _numbers
 

@@ -42,16 +42,16 @@ class PartTimer:
     """Wraps the functions the line stage calls and sums their time per query, by part."""
 
     def __init__(self, lq):
-        import localization.pipeline as P
+        import localization.query as P
 
         self.P, self.lq, self.t, self.in_rescue, self.depth = P, lq, defaultdict(float), False, 0
-        self.saved = [(P, "line_verified_poses"), (P, "estimate_pose_point_line"), (P, "refine_pose_point_line"),
+        self.saved = [(P, "line_verified_poses"), (P, "pnpl_pose"), (P, "refine_pnpl_pose"),
                       (P, "rescue_pose"), (lq, "match"), (lq, "visible_lines")]
         self.originals = [getattr(o, n) for o, n in self.saved]
         self._wrap(P, "line_verified_poses", lambda: "hypotheses")
-        self._wrap(P, "estimate_pose_point_line", lambda: "rescue PnPL" if self.in_rescue else "narrow PnPL")
+        self._wrap(P, "pnpl_pose", lambda: "rescue PnPL" if self.in_rescue else "narrow PnPL")
         self._wrap(lq, "match", lambda: "rescue query" if self.in_rescue else "narrow query")
-        self._wrap(P, "refine_pose_point_line", lambda: "rescue PnPL")
+        self._wrap(P, "refine_pnpl_pose", lambda: "rescue PnPL")
         self._wrap(lq, "visible_lines", lambda: "rescue query" if self.in_rescue else "visibility")
         rescue = P.rescue_pose
 
@@ -91,7 +91,7 @@ class PartTimer:
 
 
 def run_once(scene, points, lq, lines, conf, seeds) -> dict:
-    from localization.pipeline import localize_query
+    from localization.query import localize_query
 
     timer = PartTimer(lq)
     rows = {"rescued": defaultdict(list), "not rescued": defaultdict(list)}
@@ -119,7 +119,7 @@ def run_once(scene, points, lq, lines, conf, seeds) -> dict:
 def main(argv=None):
     from lipmap.datasets import load_scene
     from localization.cli import _mapping_conf
-    from localization.pipeline import LocalizationConfig
+    from localization.config import LocalizationConfig
     from localization_variants import eval_inputs, variant_config
 
     ap = results.scene_parser(__doc__)

@@ -78,7 +78,8 @@ def main(argv=None):
     from lipmap import logger
     from lipmap.datasets import load_scene
     from lipmap.datasets.synthetic import SynthConfig, generate_scene
-    from localization.pipeline import LocalizationConfig, localize_scene
+    from localization.config import LocalizationConfig
+    from localization.pipeline import localize_scene
 
     w, h = (int(v) for v in args.size.split("x"))
     f = 0.8203125 * w  # the 7-Scenes field of view (525 / 640)

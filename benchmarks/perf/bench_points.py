@@ -59,7 +59,9 @@ def main(argv=None):
     ap.add_argument("--global-dim", type=int, default=1024)
     args = ap.parse_args(argv)
 
-    from localization import points, retrieval
+    from localization import points
+    from localization.points import features as pfeatures
+    from localization.points import matching as pmatching, pairs as ppairs, retrieval
     from localization.points import SiftConfig
     from test_points_scale import trajectory_views
 
@@ -67,7 +69,7 @@ def main(argv=None):
     views = image_views(args.images, args.num_images)
     out["image_size"] = [views[0].camera.width, views[0].camera.height]
     conf = SiftConfig()
-    workers = points.default_workers()
+    workers = pfeatures.default_workers()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         ext = {}
@@ -86,7 +88,7 @@ def main(argv=None):
 
         def old_match():  # the former loop's cost when no pair's images are cached: read both, match
             for a, b in pairs:
-                cache = points._DescriptorCache(feats)
+                cache = pmatching._DescriptorCache(feats)
                 points.mutual_nn_ratio(cache(a), cache(b))
 
         t_old = median_time(old_match, args.runs)
@@ -100,7 +102,7 @@ def main(argv=None):
         pv = trajectory_views(n, length=n / 5.0)  # ~0.2 m between frames along a winding walk
         row = {"new_s": median_time(lambda: points.pairs_from_poses(pv), 1 if n > 2000 else args.runs)}
         if n <= args.dense_max:
-            row["old_s"] = median_time(lambda: points._pairs_from_poses_dense(pv), 1)
+            row["old_s"] = median_time(lambda: ppairs._pairs_from_poses_dense(pv), 1)
             t_dense_ref = (n, row["old_s"])
         elif t_dense_ref:
             row["old_s_extrapolated_n2"] = t_dense_ref[1] * (n / t_dense_ref[0]) ** 2

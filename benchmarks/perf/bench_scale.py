@@ -108,7 +108,8 @@ def worker_map(args) -> list:
 
 def worker_loc(args) -> list:
     """Localize ``args.n`` queries against the map of ``args.loc_views`` views; one row per stage."""
-    from localization.pipeline import LocalizationConfig, localize_scene
+    from localization.config import LocalizationConfig
+    from localization.pipeline import localize_scene
 
     import shutil
 

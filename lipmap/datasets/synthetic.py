@@ -558,17 +558,19 @@ def _scene_meta(cfg: SynthConfig, seed: int, room: Room, plain_pixels: int, tota
 
 # ---- CLI --------------------------------------------------------------------------------------------------
 def add_synth_parser(subparsers) -> argparse.ArgumentParser:
+    from lipmap.cliargs import int_at_least
+
     p = subparsers.add_parser("synth", help="generate a procedural synthetic room in the 7-Scenes layout",
                               description=generate_scene.__doc__)
     p.add_argument("--out", type=Path, required=True, help="root folder; the scene goes to OUT/room-s<seed>")
-    p.add_argument("--seed", type=int, default=0, help="random seed: the same seed gives identical files")
+    p.add_argument("--seed", type=int_at_least(0), default=0, help="random seed: the same seed gives identical files")
     p.add_argument("--preset", choices=sorted(SYNTH_PRESETS), default="small",
                    help="small: 320x240, 30+20 frames (seconds); default: 640x480, 100+50 frames; "
                         "small-noisy-depth: small with predicted-depth-like errors in the depth files; "
                         "medium: 2 rooms, 640x480, 200+60 frames (minutes); large: 5 rooms, 640x480, "
                         "1500+500 frames (about 1.5 s a frame per worker)")
     p.add_argument("--overwrite", action="store_true", help="regenerate even if the scene exists")
-    p.add_argument("--workers", type=int, default=1,
+    p.add_argument("--workers", type=int_at_least(1), default=1,
                    help="render frames in this many processes (same files as with 1)")
     p.set_defaults(func=cli_synth)
     return p

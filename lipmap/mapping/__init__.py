@@ -31,5 +31,5 @@ Lines (Sec. 3.2 assignment, Sec. 3.3 line loss, Sec. 3.4 finalization; appendix 
 Localization (Sec. 4.5; ours, the reference code has none):
     line query                localization.linequery.LineQuery (projection matching, or the paper's ray cast
                               of the query line's region against the planes)
-    PnPL                      localization.estimate.estimate_pose_point_line (PoseLib, points + lines)
+    PnPL                      localization.estimate.pnpl_pose (PoseLib, points + lines)
 """

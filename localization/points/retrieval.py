@@ -22,8 +22,8 @@ from lipmap.errors import InputError
 from lipmap.presets import resolve
 from lipmap.imageio import atomic_path
 
-from . import hloc_io
-from .hloc_io import h5_update, list_h5_names
+from .. import hloc_io
+from ..hloc_io import h5_update, list_h5_names
 
 
 @dataclass
