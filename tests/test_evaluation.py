@@ -233,4 +233,4 @@ def test_cli_map_eval_min_support(tmp_path, capsys):
     assert main([*args, "--json", str(tmp_path / "all.json")]) == 0  # default 0: every line
     assert json.loads((tmp_path / "all.json").read_text())["n_lines"] == 3
     assert main([*args, "--min-support", "-1"]) == 2
-    assert "--min-support must be >= 0" in capsys.readouterr().err
+    assert "argument --min-support: must be an integer >= 0" in capsys.readouterr().err
