@@ -30,6 +30,11 @@ def cell(s: dict) -> str:
     return f"{s['median_t_cm']:.2f} / {s['median_R_deg']:.2f} / {s['acc_5cm_5deg']:.0f} %"
 
 
+def paired_cell(p) -> str:
+    """Queries point+line localizes better / worse than point-only, and the one-sided signed-rank p that it is worse."""
+    return "" if not p else f"{p['b_better']} / {p['b_worse']} (p {p['p_b_worse']:.2g})"
+
+
 def paper_cell(v) -> str:
     return f"{v[0]:g} / {v[1]:g} / {v[2]:g} %"
 
@@ -42,7 +47,7 @@ def main(argv=None):
     results.require_clean()
     paper = json.loads(PAPER.read_text())["scenes"][args.scene]
     header = ["queries", "ground truth", "point matches", "ours, point-only", "ours, point+line",
-              *(f"paper ({args.scene}, full test split): {c}" for c in PAPER_COLUMNS)]
+              "per query: point+line better / worse", *(f"paper ({args.scene}, full test split): {c}" for c in PAPER_COLUMNS)]
     rows, sources = [], {}
     for name in args.runs.split(","):
         r = results.read(name)
@@ -56,7 +61,7 @@ def main(argv=None):
             draws = run.get("match_seeds")
             rows.append([first_row[0] if i == 0 else "", first_row[1] if i == 0 else "",
                          budget if not draws else f"{budget} ({len(draws)} draws)", cell(run["point"]),
-                         cell(run["point+line"]),
+                         cell(run["point+line"]), paired_cell(run.get("paired")),
                          *((paper_cell(paper[c]) for c in PAPER_COLUMNS) if not rows else ("", ""))])
     results.write("headline-7scenes", {"scene": args.scene, "runs": sources, "table": {"header": header, "rows": rows}})
 

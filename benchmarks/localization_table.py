@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from localization.evaluate import paired_comparison
 from localization.linequery import LineQueryConfig
 from localization.config import LocalizationConfig
 from localization.pipeline import run_eval
@@ -30,8 +31,15 @@ import results  # noqa: E402
 
 HEADER = ["scene", "ground truth", "line map", "point matches",
           "point-only: cm / deg / % at 1 cm 1°, 2 cm 2°, 5 cm 5°", "point+line: same",
+          "point+line against point-only, per query: better / worse, p(worse)",
           "line matches / correct (precision); PnPL inlier precision", "line stage ms"]
 THRESHOLDS = ((1.0, 1.0), (2.0, 2.0), (5.0, 5.0))
+
+
+def errors(runs: list[dict], key: str) -> np.ndarray:
+    """Translation errors (cm; inf = failed) of every query of every run, draw-major, queries in results order."""
+    return np.array([np.inf if q.get(key, {}).get("t_cm") is None else q[key]["t_cm"]
+                     for res in runs for q in res["queries"].values()], dtype=float)
 
 
 def pooled(runs: list[dict], key: str) -> dict:
@@ -80,6 +88,7 @@ def main(argv=None):
     ap.add_argument("--pose-source", default="posetxt")
     ap.add_argument("--points", default="sift-n4096")
     ap.add_argument("--label", default=None)
+    ap.add_argument("--hloc", type=Path, default=None, help="points from hloc's output tree (as eval --hloc)")
     ap.add_argument("--tag", default="")
     args = ap.parse_args(argv)
     results.require_clean()  # before the run: figures from a dirty tree reproduce from no commit
@@ -91,11 +100,14 @@ def main(argv=None):
         for seed in ([0] if n is None else seeds):
             conf = LocalizationConfig(max_point_matches=n, match_seed=seed, map_method=args.method, mapping=args.preset,
                                       points=args.points, line_query=replace(LineQueryConfig(), method=args.line_query))
-            path = run_eval(args.dataset, args.root, [args.scene], args.out, conf, pose_source=args.pose_source)
+            path = run_eval(args.dataset, args.root, [args.scene], args.out, conf, pose_source=args.pose_source,
+                            hloc_dir=args.hloc)
             per_seed.append(json.loads((path.parent / args.scene / "results.json").read_text()))
         pt, pl, ls = pooled(per_seed, "point"), pooled(per_seed, "point+line"), line_stats(per_seed)
-        runs[m] = {"point": pt, "point+line": pl, "lines": ls, "map": per_seed[0]["map"], "match_seeds": None if n is None else seeds,
-                   "summaries": [r["summary"] for r in per_seed]}
+        paired = paired_comparison(errors(per_seed, "point"), errors(per_seed, "point+line"))
+        runs[m] = {"point": pt, "point+line": pl, "paired": paired, "lines": ls, "map": per_seed[0]["map"],
+                   "match_seeds": None if n is None else seeds, "summaries": [r["summary"] for r in per_seed],
+                   "t_cm": {k: errors(per_seed, k).tolist() for k in ("point", "point+line")}}
         n_q = len(per_seed[0]["queries"])
         map_cell = f"{args.method} `{args.preset}`" if args.method == "lipmap" else args.method
         if args.line_query != "projection":
@@ -104,6 +116,7 @@ def main(argv=None):
         rows.append([(args.label or f"{args.scene} ({n_q} queries)") if first else "", args.pose_source if first else "",
                      f"{map_cell}, {per_seed[0]['map']['n_lines']} lines" if first else "",
                      m if n is None else f"{m} ({len(seeds)} draws)", cell(pt), cell(pl),
+                     f"{paired['b_better']} / {paired['b_worse']}, {paired['p_b_worse']:.2g}",
                      f"{ls['median_matches']:.0f} / {ls['median_correct']:.0f} ({100 * ls['match_precision']:.0f} %); "
                      f"{100 * ls['inlier_precision']:.0f} %" if ls else "", f"{ls.get('median_ms_line_stage') or 0:.0f}"])
         print("| " + " | ".join(map(str, rows[-1])) + " |", flush=True)

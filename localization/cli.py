@@ -93,13 +93,13 @@ def _max_line_step(text: str) -> tuple:
 
 
 def _point_budget(text: str):
-    """``--max-point-matches``: ``all`` (None) or a number of matches >= 1."""
+    """``--max-point-matches``: ``all`` (None) or a number of matches >= 0 (0: lines only)."""
     if text.strip().lower() == "all":
         return None
     try:
-        return int_at_least(1)(text)
+        return int_at_least(0)(text)
     except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"takes 'all' or a number of matches >= 1, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"takes 'all' or a number of matches >= 0, got {text!r}") from None
 
 
 def _keyframes(text: str) -> tuple:
@@ -440,8 +440,8 @@ def _add_eval_parser(sub):
                         "{scene} in PATH becomes each scene's name")
     p.add_argument("--seed", type=int_at_least(0), default=0, help="seed of every random step (RANSAC, the point-match draws)")
     p.add_argument("--max-point-matches", type=_point_budget, default=None, metavar="N|all",
-                   help="a seeded random subset of N >= 1 2D-3D point matches per query, the same for point-only and "
-                        "point+line (default all)")
+                   help="a seeded random subset of N 2D-3D point matches per query, the same for point-only and "
+                        "point+line: 0 is lines only, below 3 the lines go first (default all)")
     _add_mapping_args(p, method_default=LocalizationConfig().map_method)
     p.add_argument("--line-query", default=None, choices=list(LINE_QUERY_METHODS),
                    help="how a query's 2D lines find their map lines: projection (default: the map lines visible from "

@@ -95,7 +95,7 @@ def check_config(conf: LocalizationConfig) -> LocalizationConfig:
     rc, lq, pp, plp, hc = conf.line_rescue, conf.line_query, conf.point_pose, conf.point_line_pose, conf.line_rescue.hypotheses
     checks = [
         ("seed", conf.seed, _int(0), "an integer >= 0"),
-        ("max_point_matches", conf.max_point_matches, lambda v: v is None or _int(1)(v), "None (every match) or an integer >= 1"),
+        ("max_point_matches", conf.max_point_matches, lambda v: v is None or _int(0)(v), "None (every match) or an integer >= 0"),
         ("match_seed", conf.match_seed, lambda v: v is None or _int(0)(v), "None (the seed) or an integer >= 0"),
         ("num_retrieved", conf.num_retrieved, _int(1), "an integer >= 1"),
         ("line_iters", conf.line_iters, _int(1), "an integer >= 1"),
@@ -117,6 +117,9 @@ def check_config(conf: LocalizationConfig) -> LocalizationConfig:
         ("point_line_pose.min_iterations", plp.min_iterations, _int(0), "an integer >= 0"),
         ("point_line_pose.max_iterations", plp.max_iterations, _int(1), "an integer >= 1"),
         ("point_line_pose.success_prob", plp.success_prob, lambda v: 0 < v < 1, "in (0, 1)"),
+        ("point_line_pose.refine", plp.refine, lambda v: v in ("poselib", "weighted"), "'poselib' or 'weighted'"),
+        ("point_line_pose.min_scale", plp.min_scale, _pos, "> 0 px"),
+        ("point_line_pose.line_scale_factor", plp.line_scale_factor, _pos, "> 0"),
         ("line_query.method", lq.method, lambda v: v in LINE_QUERY_METHODS, f"one of {', '.join(LINE_QUERY_METHODS)}"),
         ("line_query.max_angle_deg", lq.max_angle_deg, _pos, "> 0 degrees"),
         ("line_query.max_dist_px", lq.max_dist_px, _pos, "> 0 px"),
@@ -154,6 +157,11 @@ def check_config(conf: LocalizationConfig) -> LocalizationConfig:
         ("line_rescue.hypotheses.min_support", hc.min_support, _int(0), "an integer >= 0 images"),
         ("line_rescue.hypotheses.max_dist_px", hc.max_dist_px, _pos, "> 0 px"),
         ("line_rescue.hypotheses.min_agree", hc.min_agree, lambda v: 0 <= v <= 1, "in [0, 1]"),
+        ("line_rescue.hypotheses.lines_first.below", hc.lines_first.below, _int(0), "an integer >= 0 (0: never)"),
+        ("line_rescue.hypotheses.lines_first.views", hc.lines_first.views, _int(0), "an integer >= 0"),
+        ("line_rescue.hypotheses.lines_first.max_prior_deg", hc.lines_first.max_prior_deg, lambda v: _pos(v) and v < 45,
+         "in (0, 45) degrees"),
+        ("line_rescue.hypotheses.lines_first.depth_bin", hc.lines_first.depth_bin, _pos, "> 0 m"),
     ]
     for name, value, ok, what in checks:
         try:

@@ -191,6 +191,12 @@ class PointLinePoseConfig:
     max_iterations: int = 10_000
     success_prob: float = 0.9999
     bundle: dict = field(default_factory=dict)
+    # the final refinement: "poselib" is PoseLib's (one Cauchy scale, half the point threshold, for points and lines
+    # alike); "weighted" gives each kind the Cauchy scale of its own RANSAC inliers' median residual, so a kind is
+    # weighted by its noise (a Cauchy loss weighs small residuals by 1 / scale^2)
+    refine: str = "weighted"
+    min_scale: float = 1.0  # px: the weighted refinement's scales stay at or above it (COLMAP's point scale)
+    line_scale_factor: float = 1.0  # the line scale, times this (weights lines by 1 / factor^2 beside the points)
 
 
 def _point_line_input(p2d, p3d, lines2d, lines3d):
@@ -252,22 +258,66 @@ def pnpl_pose(
         kw["initial_pose"] = _camera_pose(initial)
     li = np.flatnonzero(okl)
     pi = np.flatnonzero(okp)
+    if conf.refine not in ("poselib", "weighted"):
+        raise ValueError(f"PointLinePoseConfig.refine must be 'poselib' or 'weighted', got {conf.refine!r}")
+    weighted = conf.refine == "weighted"
     try:
         pose, info = poselib.estimate_absolute_pose_pnpl(
             p2d[pi], p3d[pi], l2[li, 0], l2[li, 1], l3[li, 0], l3[li, 1], _camera_dict(camera), ransac,
-            dict(conf.bundle), **kw,
+            {"max_iterations": 0} if weighted else dict(conf.bundle), **kw,
         )
     except Exception as e:  # malformed input only; the query keeps its point-only pose
         logger.warning("PoseLib PnPL failed: %s", e)
         return {**fail, "reason": f"PoseLib error: {e}"}
-    T = make_T(np.asarray(pose.R), np.asarray(pose.t))
     line_inl = np.zeros(m, bool)
     line_inl[li] = np.asarray(info.get("inliers_lines", np.zeros(len(li))), dtype=bool)
     pt_inl = np.zeros(n, bool)
     pt_inl[pi] = np.asarray(info.get("inliers_points", info.get("inliers", np.zeros(len(pi)))), dtype=bool)
+    if weighted and pt_inl.sum() + line_inl.sum() >= 4:
+        pose = _weighted_refinement(p2d[pt_inl], p3d[pt_inl], l2[line_inl], l3[line_inl], pose, camera, conf)
+    T = make_T(np.asarray(pose.R), np.asarray(pose.t))
     ok = bool(np.all(np.isfinite(T)) and pt_inl.sum() + line_inl.sum() >= 4)
     return {"cam_from_world": T if np.all(np.isfinite(T)) else None, "success": ok, "n_inliers": int(pt_inl.sum()),
             "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": len(l2)}
+
+
+def pnpl_residuals(p2d, p3d, lines2d, lines3d, T: np.ndarray, camera) -> tuple:
+    """Pixel residuals at pose ``T``: of each point :math:`(N,)` (reprojection error; inf behind the camera) and of
+    each line's two 3D endpoints to its detection's infinite line :math:`(M, 2)` (PoseLib's line residual)."""
+    uv, z = geo.project_points(np.asarray(p3d, dtype=float).reshape(-1, 3), T, camera)
+    rp = np.where(np.asarray(z) > 0, np.linalg.norm(np.asarray(uv) - np.asarray(p2d).reshape(-1, 2), axis=1), np.inf)
+    X = np.asarray(lines3d, dtype=float).reshape(-1, 3)
+    uvl, zl = geo.project_points(X, T, camera)
+    ends = np.asarray(uvl).reshape(-1, 2, 2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rl = geo.point_line_distance(ends, np.asarray(lines2d, dtype=float).reshape(-1, 1, 2, 2))
+    rl = np.where(np.asarray(zl).reshape(-1, 2) > 0, rl, np.inf)
+    return rp, rl
+
+
+def _weighted_refinement(p2d, p3d, l2, l3, pose, camera, conf: PointLinePoseConfig):
+    """PoseLib's point+line refinement from ``pose`` over the inliers, each kind at the Cauchy scale of its own median
+    residual (at least ``conf.min_scale``, at most half its inlier threshold)."""
+    import poselib
+
+    T = make_T(np.asarray(pose.R), np.asarray(pose.t))
+    rp, rl = pnpl_residuals(p2d, p3d, l2, l3, T, camera)
+
+    def scale(r, thr):
+        r = r[np.isfinite(r)]
+        return float(np.clip(np.median(r) if len(r) else thr, conf.min_scale, 0.5 * thr))
+
+    sp = scale(rp, conf.max_reproj_error)
+    sl = scale(rl.ravel(), conf.max_line_error) * conf.line_scale_factor
+    bundle = {"loss_type": "CAUCHY", **conf.bundle}
+    try:
+        refined, _ = poselib.refine_absolute_pose_pnpl(
+            p2d, p3d, l2[:, 0], l2[:, 1], l3[:, 0], l3[:, 1], pose, _camera_dict(camera),
+            {**bundle, "loss_scale": sp}, {**bundle, "loss_scale": sl})
+    except Exception as e:  # malformed input only: the RANSAC pose stands
+        logger.warning("PoseLib PnPL refinement failed: %s", e)
+        return pose
+    return refined
 
 
 def refine_pnpl_pose(

@@ -14,13 +14,15 @@ direction is the y axis). Those poses join the P3P ones before the line scoring 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import combinations
 
 import cv2
 import numpy as np
 
 from lipmap import geometry as geo
+
+from .linesfirst import LinesFirstConfig, lines_first_poses
 
 
 
@@ -56,6 +58,9 @@ class HypothesisConfig:
     # ... tried only when no P3P pose explains this many matches (0: always): a pose that explains more than
     # its own triple is usually right, and the two-point poses then cost time for nothing
     upright_below: int = 5
+    # with fewer point matches than lines_first.below, also the poses of localization.linesfirst (rotation from the
+    # vanishing points near the retrieved images', translation voted by the lines along each match's ray)
+    lines_first: LinesFirstConfig = field(default_factory=LinesFirstConfig)
 
 
 def _bearings(p2d: np.ndarray, camera) -> np.ndarray:
@@ -276,14 +281,17 @@ def scoring_lines(lines3d: np.ndarray, n: int) -> np.ndarray:
 
 
 def line_verified_poses(p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, map_lines: np.ndarray, camera,
-                        conf: HypothesisConfig, seed: int = 0, directions: np.ndarray | None = None) -> list:
-    """The ``conf.keep`` poses of the point matches (P3P, and with ``conf.upright`` the vanishing-point-aligned
-    two-point ones) that the most map lines agree with, best first.
+                        conf: HypothesisConfig, seed: int = 0, directions: np.ndarray | None = None,
+                        views: list = ()) -> list:
+    """The ``conf.keep`` poses of the point matches (P3P, with ``conf.upright`` the vanishing-point-aligned
+    two-point ones, and with fewer matches than ``conf.lines_first.below`` those of :mod:`localization.linesfirst`
+    near ``views``) that the most map lines agree with, best first.
 
     Args:
         p2d: (N, 2) COLMAP pixels; p3d: (N, 3) world points; lines2d: (M, 4) query detections;
         map_lines: (L, 2, 3) the lines that score (:func:`scoring_lines`);
         directions: (K, 3) the map's dominant directions (default: :func:`dominant_directions` of ``map_lines``).
+        views: poses (4, 4) whose rotations the lines-first rotations lie near (the retrieved images').
 
     Returns:
         list of (4, 4) cam_from_world.
@@ -300,12 +308,20 @@ def line_verified_poses(p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, m
         return poses[top], inl[top]
 
     poses, inl = best_inside(*p3p_hypotheses(p2d, p3d, camera, conf, seed), conf.max_hypotheses)
-    if conf.upright and not (conf.upright_below > 0 and len(inl) and inl.max() >= conf.upright_below):
+    lines_first = len(p2d) < conf.lines_first.below and len(views) > 0
+    upright = conf.upright and not (conf.upright_below > 0 and len(inl) and inl.max() >= conf.upright_below)
+    if lines_first or upright:
         if directions is None:
             directions = dominant_directions(map_lines, conf.map_directions, conf.direction_tol_deg)
-        up = upright_hypotheses(p2d, p3d, camera, vanishing_points(lines2d, camera, conf, seed), directions, conf, seed)
+        vps = vanishing_points(lines2d, camera, conf, seed)
+    if upright:
+        up = upright_hypotheses(p2d, p3d, camera, vps, directions, conf, seed)
         up, up_inl = best_inside(up, point_inliers(up, p2d, p3d, camera, conf.max_point_error), conf.max_upright)
         poses, inl = np.concatenate([poses, up]), np.concatenate([inl, up_inl])
+    if lines_first:
+        lf = lines_first_poses(p2d, p3d, lines2d, camera, list(views), map_lines, directions, vps, conf.lines_first)
+        lf, lf_inl = best_inside(lf, point_inliers(lf, p2d, p3d, camera, conf.max_point_error), len(lf))
+        poses, inl = np.concatenate([poses, lf]), np.concatenate([inl, lf_inl])
     if len(poses) == 0:
         return []
     evidence = LineEvidence(lines2d, camera, conf)

@@ -16,7 +16,7 @@ from lipmap import geometry as geo
 from lipmap.poses import pose_errors
 
 from .config import LocalizationConfig
-from .estimate import pnpl_pose, estimate_pose_points, refine_pnpl_pose, subsample_matches
+from .estimate import estimate_pose_points, pnpl_pose, refine_pnpl_pose, subsample_matches
 from .hypotheses import line_verified_poses
 from .linequery import LineQuery, LineQueryConfig, correct_line_matches
 
@@ -53,8 +53,10 @@ def localize_query(name, camera, points, lines2d, lq: LineQuery, conf: Localizat
     pm = pm.subset(idx)
     if trace is not None:
         trace.append({"point_matches": pm})
-    priors = retrieved_poses(name, points, conf.line_rescue.prior_views)
-    return localize_matches(pm, lines2d, camera, lq, conf, name, priors=priors, cam_from_world_gt=cam_from_world_gt,
+    rc = conf.line_rescue
+    views = retrieved_poses(name, points, max(rc.prior_views, rc.hypotheses.lines_first.views))
+    return localize_matches(pm, lines2d, camera, lq, conf, name, priors=views[:rc.prior_views],
+                            views=views[:rc.hypotheses.lines_first.views], cam_from_world_gt=cam_from_world_gt,
                             trace=trace, t0=t0)[0]
 
 
@@ -69,7 +71,7 @@ def retrieved_poses(name: str, points, k: int) -> list:
 
 
 def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfig, name: str = "query",
-                     priors=(), line_matches: Optional[dict] = None, cam_from_world_gt=None,
+                     priors=(), views=(), line_matches: Optional[dict] = None, cam_from_world_gt=None,
                      trace: Optional[list] = None, t0: Optional[float] = None) -> tuple:
     """Point-only and point+line poses of one query from its 2D-3D point matches and 2D lines. Never raises for a
     bad query: failures are recorded.
@@ -83,6 +85,8 @@ def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfi
         lines2d: :math:`(L, 4)` query segments, COLMAP pixels.
         priors: starting poses :math:`(4, 4)` cam_from_world for a weak query's lines (a prior pose, the retrieved
             images' poses).
+        views: poses :math:`(4, 4)` near the query's rotation (the retrieved images'), for the poses from lines of a
+            query with too few point matches for P3P (:mod:`localization.linesfirst`); ``priors`` serve too.
         line_matches: 2D-3D line matches made elsewhere (:func:`given_line_matches`): the line query is skipped and
             one PnPL RANSAC over the points and these lines gives the point+line pose.
         cam_from_world_gt: with it, the line matches of the last refinement (and its PnPL line inliers) are checked
@@ -120,10 +124,10 @@ def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfi
         starts += priors
         if rescue.hypotheses.keep > 0:
             hc = rescue.hypotheses
-            dirs = (lq.dominant_directions(hc.n_map_lines, hc.min_support, hc.map_directions, hc.direction_tol_deg)
-                    if hc.upright else None)
+            dirs = lq.dominant_directions(hc.n_map_lines, hc.min_support, hc.map_directions, hc.direction_tol_deg)
             starts += line_verified_poses(pm.p2d, pm.p3d, lines2d, lq.scoring_lines(hc.n_map_lines, hc.min_support),
-                                          camera, hc, seed=conf.seed, directions=dirs)
+                                          camera, hc, seed=conf.seed, directions=dirs,
+                                          views=list(priors) + [np.asarray(V, dtype=float) for V in views])
         r = rescue_pose(pm, lines2d, starts, lq, camera, conf, trace)
         if r is not None:
             T, rescued = r["cam_from_world"], True

@@ -247,7 +247,6 @@ def test_every_option_has_help():
 @pytest.mark.parametrize("command, option, bad", [
     ("eval", "--seed", "-1"),
     ("eval", "--max-point-matches", "-3"),
-    ("eval", "--max-point-matches", "0"),
     ("eval", "--max-point-matches", "many"),
     ("eval", "--min-support", "-1"),
     ("eval", "--line-rescue", "-2"),
@@ -291,4 +290,4 @@ def test_the_point_budget_is_all_or_a_number():
         return eval_config(build_parser().parse_args(["eval", "--dataset", "synthetic", "--out", "x", *opts])).max_point_matches
 
     assert budget() is None and budget("--max-point-matches", "all") is None
-    assert budget("--max-point-matches", "5") == 5
+    assert budget("--max-point-matches", "5") == 5 and budget("--max-point-matches", "0") == 0

@@ -1,0 +1,133 @@
+"""Poses from 3, 2, 1 and 0 point matches: the lines go first (localization.linesfirst), on a synthetic room whose
+lines run along three directions, as an indoor map's do."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from lipmap import geometry as geo
+from lipmap.linemap import LineMap
+from lipmap.poses import make_T, pose_errors
+from lipmap.scene import Camera
+from localization import LocalizationConfig, Localizer
+from localization.hypotheses import HypothesisConfig, dominant_directions, vanishing_points
+from localization.linesfirst import (LinesFirstConfig, interpretation_normals, lines_first_poses, voted_centres,
+                                     vp_rotations)
+
+CAM = Camera(640, 480, (525, 525, 320, 240))
+
+
+def _room(seed=0, n=400):
+    """Axis-aligned segments on the walls, floor and ceiling of a 6 x 5 x 3 m room (world z up)."""
+    rng = np.random.default_rng(seed)
+    size = np.array([6.0, 5.0, 3.0])
+    lines = []
+    for _ in range(n):
+        axis = rng.integers(3)  # the direction the segment runs along
+        face = rng.integers(3)  # the coordinate that is fixed on a wall
+        while face == axis:
+            face = rng.integers(3)
+        a = rng.uniform(0, size)
+        a[face] = rng.choice([0.0, size[face]])
+        b = a.copy()
+        b[axis] = np.clip(a[axis] + rng.choice([-1, 1]) * rng.uniform(0.3, 1.5), 0, size[axis])
+        lines.append([a, b])
+    return np.array(lines)
+
+
+def _camera(yaw=30.0, centre=(2.0, 1.5, 1.4)):
+    """cam_from_world of a camera at ``centre`` looking along world +x turned by ``yaw`` (deg), level."""
+    # camera axes in the world: x right, y down, z forward
+    fwd = Rotation.from_euler("z", yaw, degrees=True).apply([1.0, 0, 0])
+    down = np.array([0, 0, -1.0])
+    right = np.cross(down, fwd)
+    R = np.stack([right, down, fwd])  # rows: camera axes in world coordinates
+    return make_T(R, -R @ np.asarray(centre))
+
+
+def _observe(T, lines, rng, noise=0.3):
+    """The segments the camera sees (both ends in front, clipped to the image, >= 40 px), with pixel noise."""
+    proj, ok = geo.project_segments(lines, T, CAM)
+    seg = proj.reshape(-1, 4)
+    inside = ok & np.all((seg[:, [0, 2]] > 0) & (seg[:, [0, 2]] < 640) & (seg[:, [1, 3]] > 0) & (seg[:, [1, 3]] < 480), 1)
+    seg = seg[inside]
+    seg = seg[geo.segment_lengths(seg) >= 40]
+    return seg + rng.normal(0, noise, seg.shape)
+
+
+def _points(T, n, rng):
+    """``n`` 3D points on the walls the camera sees, and their pixels."""
+    X = []
+    while len(X) < n:
+        p = rng.uniform([0, 0, 0], [6, 5, 3])
+        p[rng.integers(2)] = rng.choice([0.0, 6.0])
+        uv, z = geo.project_points(p[None], T, CAM)
+        if z[0] > 0.5 and 20 < uv[0, 0] < 620 and 20 < uv[0, 1] < 460:
+            X.append(p)
+    X = np.array(X)
+    return geo.project_points(X, T, CAM)[0] + rng.normal(0, 0.5, (n, 2)), X
+
+
+def _view(T, cm=50.0, deg=12.0):
+    """A retrieved image's pose: ``cm`` away and turned by ``deg``."""
+    R = Rotation.from_euler("zy", [deg, deg / 3], degrees=True).as_matrix() @ T[:3, :3]
+    C = -T[:3, :3].T @ T[:3, 3] + np.array([cm, -cm / 2, 10]) / 100
+    return make_T(R, -R @ C)
+
+
+@pytest.fixture(scope="module")
+def room():
+    rng = np.random.default_rng(1)
+    lines = _room()
+    T = _camera()
+    return {"lines": lines, "T": T, "seen": _observe(T, lines, rng), "dirs": dominant_directions(lines, 3),
+            "pts": _points(T, 6, rng)}
+
+
+def test_the_rotation_from_vanishing_points_near_a_retrieved_image(room):
+    T, seen = room["T"], room["seen"]
+    n, w = interpretation_normals(seen, CAM)
+    vps = vanishing_points(seen, CAM, HypothesisConfig(vp_count=2))
+    rots = vp_rotations(n, np.minimum(w, 200) / 200, vps, room["dirs"], [_view(T)], LinesFirstConfig())
+    err = [pose_errors(make_T(R, T[:3, 3]), T)[1] for R, _ in rots]
+    assert min(err) < 0.5  # degrees, from a view 12 deg off
+
+
+@pytest.mark.parametrize("n_points", [0, 1, 2])
+def test_lines_first_poses_hold_the_right_one(room, n_points):
+    T, seen = room["T"], room["seen"]
+    p2d, p3d = room["pts"]
+    vps = vanishing_points(seen, CAM, HypothesisConfig(vp_count=2))
+    poses = lines_first_poses(p2d[:n_points], p3d[:n_points], seen, CAM, [_view(T)], room["lines"], room["dirs"],
+                              vps, LinesFirstConfig())
+    assert len(poses) > 0
+    best = min(poses, key=lambda P: pose_errors(P, T)[0])
+    dt, dr = pose_errors(best, T)
+    assert dt < 0.06 and dr < 0.5, (dt, dr)
+
+
+def test_the_centre_is_voted_within_the_search_only(room):
+    T = room["T"]
+    n, w = interpretation_normals(room["seen"], CAM)
+    C = -T[:3, :3].T @ T[:3, 3]
+    near = voted_centres(T[:3, :3], room["seen"], n, w / w.max(), room["lines"], room["dirs"], C + [0.6, 0.4, 0.0], CAM,
+                         LinesFirstConfig())
+    assert min(pose_errors(P, T)[0] for P in near) < 0.05
+    far = voted_centres(T[:3, :3], room["seen"], n, w / w.max(), room["lines"], room["dirs"], C + [3.0, 0.0, 0.0], CAM,
+                        LinesFirstConfig())
+    assert all(pose_errors(P, T)[0] > 0.5 for P in far)  # 3 m away: not within the 2 m searched
+
+
+@pytest.mark.parametrize("n_points", [0, 1, 2, 3])
+def test_every_budget_gives_a_pose(room, n_points):
+    """Through the per-query API, the retrieved image's pose given as ``initial``: 3, 2, 1 and 0 point matches."""
+    T, seen = room["T"], room["seen"]
+    p2d, p3d = room["pts"]
+    loc = Localizer(LineMap(room["lines"]), LocalizationConfig())
+    res = loc.localize(CAM, p2d[:n_points], p3d[:n_points], lines2d=seen, initial=_view(T))
+    assert not res.point.success and res.point_line.success and res.rescued
+    dt, dr = pose_errors(res.point_line.cam_from_world, T)
+    assert dt < 0.02 and dr < 0.3, (dt, dr)
+    if n_points < 2:  # no retrieved image and no pair of points for the two-point poses: no pose
+        assert not loc.localize(CAM, p2d[:n_points], p3d[:n_points], lines2d=seen).point_line.success
