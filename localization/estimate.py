@@ -197,6 +197,7 @@ class PointLinePoseConfig:
     refine: str = "weighted"
     min_scale: float = 1.0  # px: the weighted refinement's scales stay at or above it (COLMAP's point scale)
     line_scale_factor: float = 1.0  # the line scale, times this (weights lines by 1 / factor^2 beside the points)
+    refine_iterations: int = 10  # of the weighted refinement, from RANSAC's locally optimised pose (100: the same poses, 30 % slower)
 
 
 def _point_line_input(p2d, p3d, lines2d, lines3d):
@@ -309,7 +310,7 @@ def _weighted_refinement(p2d, p3d, l2, l3, pose, camera, conf: PointLinePoseConf
 
     sp = scale(rp, conf.max_reproj_error)
     sl = scale(rl.ravel(), conf.max_line_error) * conf.line_scale_factor
-    bundle = {"loss_type": "CAUCHY", **conf.bundle}
+    bundle = {"loss_type": "CAUCHY", "max_iterations": conf.refine_iterations, **conf.bundle}
     try:
         refined, _ = poselib.refine_absolute_pose_pnpl(
             p2d, p3d, l2[:, 0], l2[:, 1], l3[:, 0], l3[:, 1], pose, _camera_dict(camera),

@@ -124,7 +124,8 @@ def main(argv=None):
 
     ap = results.scene_parser(__doc__)
     ap.add_argument("--pose-source", default="posetxt")
-    ap.add_argument("--matches", type=int, default=10, help="point matches per query (0: all)")
+    ap.add_argument("--matches", type=lambda s: None if s == "all" else int(s), default=10,
+                    help="point matches per query ('all': every match)")
     ap.add_argument("--match-seeds", default="0,1,2,3,4")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--tag", default="", help="suffix of the results file (e.g. the commit of another checkout)")
@@ -134,10 +135,10 @@ def main(argv=None):
 
     scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source)
     scene_dir = args.out / args.dataset / args.scene
-    base = LocalizationConfig(max_point_matches=args.matches or None,
+    base = LocalizationConfig(max_point_matches=args.matches,
                               mapping=_mapping_conf(Namespace(preset=LocalizationConfig().mapping, keyframes=None)))
     points, linemap, lq, lines = eval_inputs(scene, scene_dir, base)
-    seeds = [int(s) for s in args.match_seeds.split(",")] if args.matches else [0]
+    seeds = [int(s) for s in args.match_seeds.split(",")] if args.matches is not None else [0]
     over = json.loads(args.config)
     base = variant_config(base, over)
     run_once(scene, points, lq, lines, base, seeds[:1])  # warm-up: caches, imports
@@ -145,11 +146,11 @@ def main(argv=None):
     out, rows = {}, []
     for group in runs[0]:
         out[group] = {k: statistics.median(r[group][k] for r in runs) for k in runs[0][group]}
-        rows.append([args.scene, args.matches or "all", f"{group} ({out[group]['queries']})",
+        rows.append([args.scene, "all" if args.matches is None else args.matches, f"{group} ({out[group]['queries']})",
                      *(f"{out[group][k]:.1f}" for k in ("line stage", *PARTS))])
-        print(f"{args.scene}, {args.matches or 'all'} matches, {group} ({out[group]['queries']} per run): median ms "
+        print(f"{args.scene}, {'all' if args.matches is None else args.matches} matches, {group} ({out[group]['queries']} per run): median ms "
               + ", ".join(f"{k} {out[group][k]:.1f}" for k in ("line stage", *PARTS)))
-    results.write(f"perf-line-stage-{args.scene}-{args.matches or 'all'}" + (f"-{args.tag}" if args.tag else ""),
+    results.write(f"perf-line-stage-{args.scene}-{'all' if args.matches is None else args.matches}" + (f"-{args.tag}" if args.tag else ""),
                   {"scene": args.scene, "dataset": args.dataset, "overrides": over, "pose_source": args.pose_source, "matches": args.matches,
                    "match_seeds": seeds, "runs": args.runs, "map_lines": len(linemap), "median_ms": out,
                    "table": {"header": HEADER, "rows": rows}})
