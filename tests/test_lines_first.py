@@ -131,3 +131,38 @@ def test_every_budget_gives_a_pose(room, n_points):
     assert dt < 0.02 and dr < 0.3, (dt, dr)
     if n_points < 2:  # no retrieved image and no pair of points for the two-point poses: no pose
         assert not loc.localize(CAM, p2d[:n_points], p3d[:n_points], lines2d=seen).point_line.success
+
+
+def test_the_benchmark_loop_starts_the_lines_from_the_retrieved_images(room):
+    """localize_query (run_eval's per-query call) hands the retrieved images' poses to the lines-first poses: one point
+    match and a database image 50 cm / 12 deg away give the pose; without the retrieved image, none."""
+    from dataclasses import replace
+
+    from localization.linequery import LineQuery
+    from localization.points import PointMatches
+    from localization.query import localize_query
+
+    T, seen = room["T"], room["seen"]
+    p2d, p3d = room["pts"]
+
+    class Source:  # a point source: one point match, one retrieved database image
+        model = type("Model", (), {"__contains__": lambda self, n: n == "db",
+                                   "cam_from_world": lambda self, n: _view(T)})()
+
+        def __init__(self, retrieved):
+            self.retrieved = retrieved
+
+        def matches_for(self, name):
+            return PointMatches(p2d[:1], p3d[:1], np.zeros(1, np.int64), np.zeros(1, np.int64))
+
+        def retrieved_for(self, name):
+            return self.retrieved
+
+    conf = LocalizationConfig()
+    rec = localize_query("q", CAM, Source(["db"]), seen, LineQuery(room["lines"]), conf, cam_from_world_gt=T)
+    pl = rec["point+line"]
+    assert pl["success"] and pl["rescued"] and pose_errors(np.array(pl["cam_from_world"]), T)[0] < 0.02
+    assert not localize_query("q", CAM, Source([]), seen, LineQuery(room["lines"]), conf)["point+line"]["success"]
+    off = replace(conf, line_rescue=replace(conf.line_rescue, hypotheses=replace(
+        conf.line_rescue.hypotheses, lines_first=replace(conf.line_rescue.hypotheses.lines_first, views=0))))
+    assert not localize_query("q", CAM, Source(["db"]), seen, LineQuery(room["lines"]), off)["point+line"]["success"]
