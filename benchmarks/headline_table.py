@@ -20,7 +20,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import results  # noqa: E402
 
 PAPER = Path(__file__).resolve().parent / "7scenes" / "paper_table.json"
-DEFAULT_RUNS = "localization-7scenes-redkitchen-lipmap-posetxt,localization-7scenes-redkitchen-heldout-lipmap-sfm"
+DEFAULT_RUNS = ("localization-7scenes-redkitchen-lipmap-posetxt,localization-7scenes-redkitchen-heldout-lipmap-sfm,"
+                "localization-synthetic-room-s0-lipmap-posetxt-hloc")
 PAPER_COLUMNS = ("Hloc (point)", "LiP-Map (point+line)")
 
 
