@@ -32,7 +32,7 @@ class LinesFirstConfig:
     step_deg: float = 0.25  # the search about the first vanishing point's axis
     depth_range: tuple = (0.3, 8.0)  # m, the depths of a point match voted over
     depth_bin: float = 0.02  # m
-    peaks: int = 4  # best-voted cells kept per rotation and point match (and per stage without one): 2 found 6 % at 0 matches, 4 find 16 %
+    peaks: int = 4  # best-voted cells kept per rotation and ray (per stage without a point match): the line scoring picks
     search_m: float = 2.0  # without a point match: the camera centre is sought this far around the retrieved image's
     centre_bin: float = 0.05  # m, that search's histogram across the main direction
     min_projected_share: float = 0.3  # ... where a map line votes only if it projects at least this share of the detection
