@@ -46,7 +46,8 @@ def test_reads_what_localization_variants_writes(tmp_path, monkeypatch):
     monkeypatch.setattr(lv, "load_scene", lambda *a, **k: object())
     monkeypatch.setattr(lv, "eval_inputs", lambda *a, **k: (None, None, None, None))
     errors = {"point": np.array([np.inf, 2.0, 0.5]), "point+line": np.array([40.0, 1.5, 0.4])}
-    monkeypatch.setattr(lv, "run_variant", lambda *a, **k: {"t_cm": errors, "line_ms": 9.0, "line_matches": 30,
+    monkeypatch.setattr(lv, "run_variant", lambda *a, **k: {"t_cm": errors, "R_deg": errors, "rescued": [True] * 3,
+                                                            "line_ms": 9.0, "line_matches": 30,
                                                             "line_matches_correct": 24})
     lv.main(["--dataset", "synthetic", "--root", str(tmp_path), "--scene", "s", "--out", str(tmp_path), "--matches", "5",
              "--tag", "t", "default={}"])
