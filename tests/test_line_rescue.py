@@ -284,3 +284,21 @@ def test_a_narrowing_round_that_jumps_beyond_max_line_step_is_not_taken(monkeypa
     assert pl["success"] and not pl["used_lines"] and len(calls) == 1  # refused, and the rounds stop there
     assert pl["cam_from_world"] == guarded["point"]["cam_from_world"]
     assert pose_errors(T, np.array(pl["cam_from_world"]))[0] < 0.01
+
+
+def test_a_rescue_no_narrowing_round_confirms_is_no_pose(monkeypatch):
+    """A rescued start is a pose only once a narrowing round takes it (unconfirmed, they were nearly always wrong):
+    otherwise the query fails with the reason, instead of returning the rescue's guess as a pose."""
+    import localization.query as Q
+
+    T, ends, l2, pm = _scene(3)
+    guess = {"cam_from_world": _off(T, 40, 10), "inliers": np.ones(len(pm), bool), "n_inliers": len(pm),
+             "n_line_inliers": 9, "success": True}
+    monkeypatch.setattr(Q, "rescue_pose", lambda *a, **k: guess)
+    monkeypatch.setattr(Q, "refine_with_lines", lambda pm, l2, T, *a, **k: (T, None, None, False, None))
+    rec, detail = Q.localize_matches(pm, l2, CAM, LineQuery(ends), LocalizationConfig())
+    pl = rec["point+line"]
+    assert not pl["success"] and pl["rescued"] and "not confirmed" in pl["reason"] and not detail["point_line_inliers"].any()
+    monkeypatch.setattr(Q, "refine_with_lines", lambda pm, l2, T, *a, **k: (T, {"line_idx": np.arange(7)},
+                                                                             np.ones(7, bool), True, None))
+    assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), LocalizationConfig())[0]["point+line"]["success"]
