@@ -392,13 +392,22 @@ def visible_lines(lines3d: np.ndarray, cam_from_world: np.ndarray, camera, caste
         return idx
     T = np.asarray(cam_from_world, dtype=float)
     C = -T[:3, :3].T @ T[:3, 3]
-    pts = geo.sample_segments(lines3d[idx], 3)  # endpoints and midpoint
+    pts = geo.sample_segments(lines3d[idx], 3)  # endpoint, midpoint, endpoint
     vec = pts - C
     dist = np.linalg.norm(vec, axis=-1)
     dirs = vec / np.maximum(dist[..., None], 1e-9)
-    _, hit = caster.first_hit(np.broadcast_to(C, dirs.reshape(-1, 3).shape).copy(), dirs.reshape(-1, 3))
-    unocc = hit.reshape(dist.shape) >= dist - tol - 0.02 * dist
-    return idx[unocc.sum(1) >= 2]
+
+    def unoccluded(rows, col):
+        d = dirs[rows, col]
+        _, hit = caster.first_hit(np.broadcast_to(C, d.shape).copy(), d)
+        return hit >= dist[rows, col] - tol - 0.02 * dist[rows, col]
+
+    # the midpoint decides only where the endpoints disagree: a third fewer rays, the same answer
+    ends = np.arange(len(idx))
+    n_unocc = unoccluded(ends, 0).astype(np.int64) + unoccluded(ends, 2)
+    split = np.flatnonzero(n_unocc == 1)
+    n_unocc[split] += unoccluded(split, 1)
+    return idx[n_unocc >= 2]
 
 
 class LineVisibility:
