@@ -11,8 +11,9 @@ from lipmap.mapping.pipeline import get_conf, line_supervision
 from lipmap.mapping.supervision import _first_of_each_pair
 from lipmap.planes import Planes
 from lipmap.planes.init import DepthFrame
-from lipmap.planes.optimize import PlaneOptConfig, prepare_targets
+from lipmap.planes.config import PlaneOptConfig
 from lipmap.planes.render import rasterize_planes
+from lipmap.planes.targets import prepare_targets
 from lipmap.testing import raycast_depth
 from test_joint_optimization import _planes, panel_scene
 from test_mapping_extract import detected
@@ -98,7 +99,8 @@ def test_cuda_training_step_with_the_line_term_syncs_once():
     torch's sync debug mode warns at most once (the renderer's pair count)."""
     import warnings
 
-    from lipmap.planes.optimize import Schedule, _EpochStats, _make_optimizer, _train_view
+    from lipmap.planes.optimizer import _make_optimizer
+    from lipmap.planes.train import Schedule, _EpochStats, _train_view
 
     corners_true, views = panel_scene()
     v = views[0]

@@ -417,8 +417,10 @@ def test_a_training_step_syncs_once():
     """A whole plane-loss training step (render, masked-mean losses, backward, fused Adam, re-centring, the round's
     statistics) waits for the device only for the renderer's pair count. With boolean-indexed means, any() checks, a
     float() of the loss and an unfused Adam it waited 14 times (fast and paper alike)."""
-    from lipmap.planes.optimize import (PlaneOptConfig, Schedule, ViewTarget, _EpochStats, _live, _make_optimizer,
-                                        _train_view)
+    from lipmap.planes.config import PlaneOptConfig
+    from lipmap.planes.optimizer import _live, _make_optimizer
+    from lipmap.planes.targets import ViewTarget
+    from lipmap.planes.train import Schedule, _EpochStats, _train_view
     from lipmap.scene import Camera
 
     params = _live(random_planes(60))

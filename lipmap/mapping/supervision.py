@@ -111,7 +111,7 @@ class LineSupervision:
 
     def __call__(self, view, planes, iteration: int, render=None, target=None):
         """Line loss of ``view`` at the training resolution: that of ``target`` (the view's
-        :class:`~lipmap.planes.optimize.ViewTarget`, whose camera ``render`` was made with and whose sensor depth the
+        :class:`~lipmap.planes.targets.ViewTarget`, whose camera ``render`` was made with and whose sensor depth the
         gate reads); the view's own camera without one.
 
         Everything per iteration runs on the planes' device; on a GPU on fixed-size rows with masks, so that nothing
