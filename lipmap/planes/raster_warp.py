@@ -19,18 +19,19 @@ hundreds. Every pair is computed with the arithmetic of :func:`lipmap.planes.ren
 transcribed in ``_pair_geo`` and ``_weight``: the torch backend is this module's reference twin, and the
 tests hold both to the same hits. Float32 only.
 
-Warp is imported on first use: ``import lipmap`` works without it, and ``backend="auto"`` falls back
-to torch. Kernels compile on first launch per device (a few seconds; cached on disk afterwards).
+Warp is imported on first use (:mod:`lipmap.planes.warp_runtime`, which also launches the kernels):
+``import lipmap`` works without it, and ``backend="auto"`` falls back to torch. Kernels compile on first launch per
+device (a few seconds; cached on disk afterwards).
 """
 
-import contextlib
 import functools
 import math
-import os
 
 import torch
 
+from . import warp_runtime
 from .primitives import NEAR, R_MAX, R_MIN, SPLAT_MARGIN, TRANSMITTANCE_EPS, WEIGHT_EPS
+from .warp_runtime import device_name as _device, launch_chunks as _launch_chunks, n_chunks as _n_chunks, view as _view
 
 MAX_HITS_CAP = 32  # the per-pixel hit list lives in registers: M <= 32 (the reference composites up to 30)
 INSTALL_HINT = "pip install warp-lang==1.19.0 (a dependency of lipmap), or pass backend='torch'"
@@ -60,31 +61,8 @@ def unsupported(device: torch.device, dtype: torch.dtype, max_hits: int) -> str 
 @functools.lru_cache(maxsize=None)
 def _kernels():
     """The compiled-on-demand kernels, or None without warp-lang."""
-    try:
-        import warp as wp
-    except ImportError:
-        return None
-    # Warp's greeting and its "module loaded" lines are INFO; this level is process-wide
-    wp.config.log_level = wp.LOG_WARNING
-    # Warp probes for a CUDA driver on init and prints a warning when there is none; a CPU-only machine is fine
-    with _quiet_stderr(not torch.cuda.is_available()):
-        wp.init()
-    return _define(wp)
-
-
-@contextlib.contextmanager
-def _quiet_stderr(active: bool):
-    if not active:
-        yield
-        return
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
-            yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
+    wp = warp_runtime.load()
+    return None if wp is None else _define(wp)
 
 
 def _define(wp):
@@ -551,61 +529,9 @@ def _define(wp):
                 fwd=_raster_fwd, bwd=_raster_bwd)
 
 
-def _device(t: torch.Tensor) -> str:
-    return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
-
-
-def _wa(wp, t: torch.Tensor, dtype=None):
-    """A Warp view of a contiguous torch tensor (no copy)."""
-    return wp.from_torch(t.contiguous(), dtype=dtype, requires_grad=False)
-
-
-def _view(wp, t: torch.Tensor, dtype=None):
-    """A Warp array descriptor of a contiguous torch tensor whose storage outlives the launch: no copy and no Python
-    array object (a step passes about 80 arrays; ``wp.array`` wrappers cost about 1 ms of it on a CPU)."""
-    if not t.is_contiguous():
-        raise ValueError("a Warp view needs a contiguous tensor")  # a copy would be freed before the kernel runs
-    return wp.from_torch(t, dtype=dtype, requires_grad=False, return_ctype=True)
-
-
 # the CPU reverse pass accumulates into this many gradient buffers (pixels interleaved), summed in order: a fixed
 # split, so the gradients do not depend on how many threads run it
 _CPU_GRAD_SPLIT = 4
-
-
-def _n_chunks(t: torch.Tensor) -> int:
-    """Launches per kernel: Warp runs a CPU launch on one thread, so the CPU work is split over torch's threads."""
-    return 1 if t.device.type == "cuda" else max(1, torch.get_num_threads())
-
-
-@functools.lru_cache(maxsize=None)
-def _pool(n: int):
-    from concurrent.futures import ThreadPoolExecutor
-
-    return ThreadPoolExecutor(max_workers=n, thread_name_prefix="lipmap-raster")
-
-
-def _launch_chunks(wp, kernel, dim_per_chunk: int, device: str, n: int, args_of, threads: int | None = None):
-    """Launch ``kernel`` as ``n`` interleaved chunks, ``args_of(chunk)`` giving each one's arguments, on ``threads``
-    threads (default ``n``).
-
-    CPU chunks run on the calling thread and ``threads - 1`` pool threads (a CPU launch releases the GIL), each
-    taking the next chunk not yet taken; their arguments are packed here, on the calling thread.
-    """
-    if dim_per_chunk == 0:
-        return
-    cmds = [wp.launch(kernel, dim=dim_per_chunk, device=device, inputs=args_of(h), record_cmd=True) for h in range(n)]
-    threads = min(n, threads or n)
-    todo = iter(cmds)  # next() on a list iterator is atomic under the GIL: each chunk runs once
-
-    def drain():
-        for cmd in todo:
-            cmd.launch()
-
-    helpers = [_pool(threads - 1).submit(drain) for _ in range(threads - 1)] if threads > 1 else []
-    drain()
-    for f in helpers:
-        f.result()
 
 
 def setup(center, quat, radii, T):
