@@ -16,10 +16,12 @@ here bin the planes into screen tiles first and only test a pixel against its ti
 - ``"auto"`` (the default; ``LIPMAP_RENDER_BACKEND`` overrides it): Warp where it is installed and the
   tensors are float32 on CPU or CUDA, torch otherwise.
 
-Both backends move the planes into the camera with the same arithmetic (:func:`_planes_in_camera`; Warp's
-``_setup_fwd`` is its transcription), compute every (pixel, plane) pair with the same arithmetic
-(:func:`_pair_terms`; Warp's ``_pair_geo``) and break depth ties by plane index, so they select the same hits.
-The all-pairs twin of both lives in :mod:`lipmap.planes._torch_impl` (``_render_all_pairs``).
+This module is the one torch reference of the renderer: the Warp kernels transcribe it, and the tests hold them
+to it. Each step has one definition here: the plane-to-camera setup (:func:`_planes_in_camera`; Warp's
+``_setup_fwd``), the (pixel, plane) pair (:func:`_pair_terms`; Warp's ``_pair_geo``), the selection of the
+first hits (:func:`select_hits`: nearest first, depth ties by plane index) and the compositing and its backward
+(:class:`_Composite`; Warp's ``_raster_fwd`` / ``_raster_bwd``), so both backends select the same hits. The tests
+check this reference in turn against a brute-force all-pairs render differentiated by autograd.
 """
 from __future__ import annotations
 
