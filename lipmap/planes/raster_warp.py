@@ -31,7 +31,8 @@ import torch
 
 from . import warp_runtime
 from .primitives import NEAR, R_MAX, R_MIN, SPLAT_MARGIN, TRANSMITTANCE_EPS, WEIGHT_EPS
-from .warp_runtime import device_name as _device, launch_chunks as _launch_chunks, n_chunks as _n_chunks, view as _view
+from .warp_runtime import device_name as _device, launch_chunks as _launch_chunks, n_chunks as _n_chunks
+from .warp_runtime import stream as _stream, view as _view
 
 MAX_HITS_CAP = 32  # the per-pixel hit list lives in registers: M <= 32 (the reference composites up to 30)
 INSTALL_HINT = "pip install warp-lang==1.19.0 (a dependency of lipmap), or pass backend='torch'"
@@ -546,7 +547,7 @@ def setup(center, quat, radii, T):
     r = torch.empty(K, 4, dtype=torch.float32, device=dev)
     nc = torch.empty(K, dtype=torch.float32, device=dev)
     v3, v4 = wp.vec3, wp.vec4
-    wp.launch(kn["setup"], dim=K, device=_device(center), inputs=[
+    wp.launch(kn["setup"], dim=K, device=_device(center), stream=_stream(center), inputs=[
         _view(wp, center, v3), _view(wp, quat, v4), _view(wp, radii, v4), _view(wp, T), R_MIN, R_MAX,
         _view(wp, c, v3), _view(wp, ax, v3), _view(wp, ay, v3), _view(wp, n, v3), _view(wp, r, v4), _view(wp, nc)])
     return c, ax, ay, n, r, nc
@@ -561,7 +562,7 @@ def setup_backward(center, quat, radii, T, grads):
     center, quat, radii, T = (x.contiguous() for x in (center, quat, radii, T))
     grads = [g.contiguous() for g in grads]
     g_center, g_quat, g_radii = (torch.empty_like(x) for x in (center, quat, radii))  # contiguous, as their inputs
-    wp.launch(kn["setup_bwd"], dim=len(center), device=_device(center), inputs=[
+    wp.launch(kn["setup_bwd"], dim=len(center), device=_device(center), stream=_stream(center), inputs=[
         _view(wp, center, v3), _view(wp, quat, v4), _view(wp, radii, v4), _view(wp, T), R_MIN, R_MAX, len(grads[0]),
         *[_view(wp, g, ty) for g, ty in zip(grads, (v3, v3, v3, v3, v4))], _view(wp, g_center, v3),
         _view(wp, g_quat, v4), _view(wp, g_radii, v4)])
@@ -576,7 +577,7 @@ def recenter_(center, quat, radii) -> bool:
         return False
     kn = _kernels()
     wp = kn["wp"]
-    wp.launch(kn["recenter"], dim=len(center), device=_device(center), inputs=[
+    wp.launch(kn["recenter"], dim=len(center), device=_device(center), stream=_stream(center), inputs=[
         _view(wp, center.detach(), wp.vec3), _view(wp, quat.detach(), wp.vec4), _view(wp, radii.detach(), wp.vec4), R_MIN,
         R_MAX])
     return True
@@ -596,7 +597,7 @@ class _Raster(torch.autograd.Function):
         wp = kn["wp"]
         width, height, tile, lam, max_hits, near, dilate, intrinsics = dims
         dev, K, P = center.device, len(center), width * height
-        wdev = _device(center)
+        wdev, stream = _device(center), _stream(center)
         ntx, nty = -(-width // tile), -(-height // tile)
         v3, v4 = wp.vec3, wp.vec4
         c, ax, ay, n, r, nc = setup(center, quat, radii, T)
@@ -605,7 +606,7 @@ class _Raster(torch.autograd.Function):
         rect = torch.empty(K, 4, dtype=torch.int32, device=dev)
         count = torch.empty(K, dtype=torch.int32, device=dev)
         zmin = torch.empty(K, dtype=torch.float32, device=dev)
-        wp.launch(kn["bin"], dim=K, device=wdev, inputs=planes + [
+        wp.launch(kn["bin"], dim=K, device=wdev, stream=stream, inputs=planes + [
             dilate, fx, fy, cx, cy, width, height, tile, _view(wp, u), _view(wp, v), near, _view(wp, rect, wp.vec4i),
             _view(wp, count), _view(wp, zmin)])
         offset = torch.cumsum(count, 0, dtype=torch.int64)
@@ -613,7 +614,7 @@ class _Raster(torch.autograd.Function):
         keys = torch.empty(total, dtype=torch.int64, device=dev)
         pair_plane = torch.empty(total, dtype=torch.int32, device=dev)
         if total:
-            wp.launch(kn["emit"], dim=K, device=wdev, inputs=planes + [
+            wp.launch(kn["emit"], dim=K, device=wdev, stream=stream, inputs=planes + [
                 dilate, width, height, tile, _view(wp, u), _view(wp, v), near, _view(wp, rect, wp.vec4i), _view(wp, count),
                 _view(wp, offset), _view(wp, zmin), ntx, _view(wp, keys), _view(wp, pair_plane)])
         keys, order = torch.sort(keys)
@@ -632,7 +633,7 @@ class _Raster(torch.autograd.Function):
         outs = [_view(wp, hits), _view(wp, depth), _view(wp, alpha), _view(wp, normal, v3), _view(wp, seen)]
         tiles_per_chunk = -(-(len(start) - 1) // n_chunks)
         _launch_chunks(wp, kn["fwd"], tiles_per_chunk * tile * tile, wdev, n_chunks,
-                       lambda h: common + [h, n_chunks] + outs)
+                       lambda h: common + [h, n_chunks] + outs, stream=stream)
         ctx.save_for_backward(center, quat, radii, T, c, ax, ay, n, r, nc, u, v, hits)
         ctx.dims = dims
         ctx.mark_non_differentiable(hits, seen)
@@ -659,7 +660,7 @@ class _Raster(torch.autograd.Function):
         types = (v3, v3, v3, v3, v4)
         _launch_chunks(wp, kn["bwd"], -(-P // n_chunks), wdev, n_chunks,
                        lambda h: common + [h, n_chunks] + vs + [_view(wp, g[h], ty) for g, ty in zip(grads, types)],
-                       threads)
+                       threads, stream=_stream(c))  # autograd runs this on the forward's stream
         return (*setup_backward(center, quat, radii, T, grads), None, None, None, None)
 
 

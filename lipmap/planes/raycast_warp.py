@@ -14,7 +14,7 @@ import math
 import torch
 
 from .raster_warp import _kernels
-from .warp_runtime import device_name, launch_chunks, n_chunks, wrap
+from .warp_runtime import device_name, launch_chunks, n_chunks, stream, wrap
 
 
 def unsupported(device: torch.device, dtype: torch.dtype) -> str | None:
@@ -108,5 +108,5 @@ def first_hit(frames, origins: torch.Tensor, dirs: torch.Tensor, candidates: tor
             wrap(wp, origins.detach().to(torch.float32), v3), wrap(wp, dirs.detach().to(torch.float32), v3), P]
     chunks = n_chunks(origins)
     launch_chunks(wp, kernel, -(-P // chunks), device_name(origins), chunks,
-                  lambda h: args + [h, chunks, wrap(wp, out)])
+                  lambda h: args + [h, chunks, wrap(wp, out)], stream=stream(origins))
     return out

@@ -1,5 +1,5 @@
-"""How the Warp kernels run: Warp loaded on first use, zero-copy views of torch tensors, and CPU launches split over
-threads.
+"""How the Warp kernels run: Warp loaded on first use, zero-copy views of torch tensors, launches on torch's stream,
+and CPU launches split over threads.
 
 Shared by the rasterizer (:mod:`lipmap.planes.raster_warp`) and the first-hit kernel
 (:mod:`lipmap.planes.raycast_warp`); the kernels themselves live there.
@@ -48,6 +48,25 @@ def device_name(t: torch.Tensor) -> str:
     return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
 
 
+def stream(t: torch.Tensor):
+    """The Warp stream of torch's current stream on ``t``'s device (None on the CPU, which has no streams).
+
+    The kernels read tensors torch wrote and torch reads what they write, with no synchronisation between: both
+    must queue on one stream. Warp would otherwise launch on a stream of its own, which a caller running torch on a
+    side stream (``torch.cuda.stream(s)``) would race.
+    """
+    if t.device.type != "cuda":
+        return None
+    return _warp_stream(torch.cuda.current_stream(t.device))
+
+
+@functools.lru_cache(maxsize=64)
+def _warp_stream(torch_stream):
+    # one Warp wrapper per torch stream (torch draws its streams from a fixed pool): wrapping registers the stream
+    # with Warp, which a training step would otherwise pay at every launch
+    return load().stream_from_torch(torch_stream)
+
+
 def wrap(wp, t: torch.Tensor, dtype=None):
     """A Warp view of a contiguous torch tensor (no copy)."""
     return wp.from_torch(t.contiguous(), dtype=dtype, requires_grad=False)
@@ -73,9 +92,10 @@ def _pool(n: int):
     return ThreadPoolExecutor(max_workers=n, thread_name_prefix="lipmap-raster")
 
 
-def launch_chunks(wp, kernel, dim_per_chunk: int, device: str, n: int, args_of, threads: int | None = None):
+def launch_chunks(wp, kernel, dim_per_chunk: int, device: str, n: int, args_of, threads: int | None = None,
+                  stream=None):
     """Launch ``kernel`` as ``n`` interleaved chunks, ``args_of(chunk)`` giving each one's arguments, on ``threads``
-    threads (default ``n``).
+    threads (default ``n``), on ``stream`` (CUDA; see :func:`stream`).
 
     CPU chunks run on the calling thread and ``threads - 1`` pool threads (a CPU launch releases the GIL), each
     taking the next chunk not yet taken; their arguments are packed here, on the calling thread.
@@ -88,7 +108,7 @@ def launch_chunks(wp, kernel, dim_per_chunk: int, device: str, n: int, args_of, 
 
     def drain():
         for cmd in todo:
-            cmd.launch()
+            cmd.launch(stream)
 
     helpers = [_pool(threads - 1).submit(drain) for _ in range(threads - 1)] if threads > 1 else []
     drain()
