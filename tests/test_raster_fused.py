@@ -345,11 +345,27 @@ class TestEdgeCases:
         d_all, _, _ = render_all_pairs(*planes.tensors(), torch.eye(4), INTR, W, H, 1500.0, near=near)
         torch.testing.assert_close(d_all, d_near, atol=1e-4, rtol=0)
 
-    def test_near_plane_must_be_finite_and_not_negative(self):
+    @pytest.mark.parametrize("backend", ["torch", pytest.param("warp", marks=needs_warp)])
+    def test_near_plane_must_be_finite_and_positive(self, backend):
+        """A near plane at z <= 0 is refused where it enters, with a ValueError naming it: at 0 the screen boxes
+        would divide by it."""
+        from lipmap.planes.config import PlaneOptConfig
+        from lipmap.planes.render import render_planes, select_hits
+        from lipmap.scene import Camera
+
         p = random_planes(3)
-        for near in (-0.1, float("inf"), float("nan")):
-            with pytest.raises(InputError, match="near plane"):
-                rasterize_planes(*p.tensors(), torch.eye(4), INTR, W, H, 300.0, near=near)
+        for near in (0.0, -0.0, -0.1, float("inf"), float("nan")):
+            with pytest.raises(ValueError, match="near plane must lie at a finite z > 0"):
+                rasterize_planes(*p.tensors(), torch.eye(4), INTR, W, H, 300.0, backend=backend, near=near)
+            with pytest.raises(ValueError, match="near plane"):
+                render_planes(p, Camera(W, H, INTR), np.eye(4), 300.0, backend=backend, near=near)
+            with pytest.raises(ValueError, match="near plane"):
+                select_hits(*p.tensors(), torch.eye(4), INTR, W, H, 300.0, near=near)
+            with pytest.raises(ValueError, match="near plane"):
+                PlaneOptConfig.preset("paper", near=near)
+        # the smallest positive near plane renders
+        out = rasterize_planes(*p.tensors(), torch.eye(4), INTR, W, H, 300.0, backend=backend, near=1e-6)
+        assert out.n_pairs > 0 and PlaneOptConfig.preset("fast", near=1e-6).near == 1e-6
 
     @needs_warp
     def test_float64_and_too_many_hits_fall_back_or_fail_clearly(self):

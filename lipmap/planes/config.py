@@ -8,7 +8,7 @@ import torch
 from ..presets import resolve
 from .init import PlaneInitConfig
 from .primitives import MAX_HITS, NEAR
-from .render import TILE_SIZE
+from .render import TILE_SIZE, check_near
 
 
 @dataclass
@@ -73,7 +73,7 @@ class PlaneOptConfig:
     # planes whose centre is nearer than 0.2 m (its near culling); ours renders both sides and culls nothing
     cull_back_faces: bool = False
     min_center_depth: float = 0.0  # m
-    near: float = NEAR  # m: the renderer's near plane (reference: 0.1); nearer intersections are not rendered
+    near: float = NEAR  # m, > 0: the renderer's near plane (reference: 0.1); nearer intersections are not rendered
     max_planes: int = 20000  # splitting never grows the set beyond this
     seed: int = 0
     device: str = "auto"  # "auto" = CUDA when available
@@ -86,6 +86,9 @@ class PlaneOptConfig:
         dict of overrides or a PlaneInitConfig)."""
         base = dict(name) if isinstance(name, dict) else {"preset": name}
         return resolve({**base, **overrides}, confs, "plane optimization", default="fast")
+
+    def __post_init__(self):
+        check_near(self.near)  # refused when set, not thousands of iterations later in the first render
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -191,6 +191,16 @@ def _valid(t: torch.Tensor, w: torch.Tensor, near: float = NEAR) -> torch.Tensor
     return (t > near) & (t < math.inf) & (w > WEIGHT_EPS)
 
 
+def check_near(near: float) -> None:
+    """Refuse a near plane that is not at a finite z > 0 (an :class:`~lipmap.errors.InputError`, a ValueError).
+
+    The screen boxes project the corners of the rectangles clipped to z >= near and divide by that z: at z = 0 a
+    plane through the camera plane projects to infinity, and no pixel could be binned.
+    """
+    if not (0.0 < near < math.inf):
+        raise InputError(f"the near plane must lie at a finite z > 0, got {near}")
+
+
 def _check_inputs(center, quat, radii, cam_from_world, width, height):
     if center.ndim != 2 or center.shape[1] != 3 or quat.shape != (len(center), 4) or radii.shape != (len(center), 4):
         raise InputError(
@@ -343,6 +353,7 @@ def select_hits(
     where the transmittance falls below TRANSMITTANCE_EPS.
     """
     _check_inputs(center, quat, radii, cam_from_world, width, height)
+    check_near(near)
     intrinsics = tuple(float(v) for v in intrinsics)
     cam = _planes_in_camera(center, quat, radii, cam_from_world.to(device=center.device, dtype=center.dtype))
     return _select(cam, _plane_table(*cam), intrinsics, width, height, lam, max_hits, tile_size, near=near)
@@ -624,7 +635,7 @@ def rasterize_planes(
         max_hits: M, intersections composited per pixel (the Warp kernel takes up to 32).
         tile_size: tile edge in pixels for the binning (speed only; results do not depend on it).
         backend: ``"auto"``, ``"torch"`` or ``"warp"`` (see the module docstring); None: :data:`DEFAULT_BACKEND`.
-        near: the near plane's z-depth in metres: intersections nearer the camera are not rendered (default
+        near: the near plane's z-depth in metres, > 0: intersections nearer the camera are not rendered (default
             :data:`~lipmap.planes.primitives.NEAR`, 1 cm; the reference code's is 0.1 m).
 
     Returns:
@@ -636,8 +647,7 @@ def rasterize_planes(
     _check_inputs(center, quat, radii, cam_from_world, width, height)
     if max_hits < 1:
         raise InputError(f"max_hits must be at least 1, got {max_hits}")
-    if not (0.0 <= near < math.inf):
-        raise InputError(f"the near plane must lie at a finite z >= 0, got {near}")
+    check_near(near)
     intrinsics = tuple(float(v) for v in intrinsics)
     which = resolve_backend(backend, center.device, center.dtype, max_hits) if len(center) else "torch"
     if which == "warp" and cam_from_world.requires_grad:
