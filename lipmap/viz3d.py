@@ -65,9 +65,9 @@ def init_figure(height: int = 720, title: Optional[str] = None):
 def set_view(fig, points, up=None, elevation_deg: float = 35.0, azimuth_deg: float = 35.0, zoom: float = 1.8,
              margin: float = 0.1):
     """Look at ``points`` :math:`(N, 3)` obliquely from above, with ``up`` (default
-    :func:`lipmap.viz.up_direction` of the points) as the screen's up, and clip the axes to their
+    :func:`lipmap.viewpoints.up_direction` of the points) as the screen's up, and clip the axes to their
     robust box (1st-99th percentile, widened by ``margin``) so a few stray lines cannot shrink the map."""
-    from .viz import scene_frame, up_direction
+    from .viewpoints import scene_frame, up_direction
 
     p = np.asarray(points, dtype=float).reshape(-1, 3)
     p = p[np.isfinite(p).all(1)]
@@ -327,7 +327,8 @@ def linemap_figure(linemap, views=None, corners=None, title: Optional[str] = Non
     Returns:
         the figure; ``fig.layout.meta["camera_size"]`` is the pyramid depth used, for adding more cameras.
     """
-    from .viz import linemap_corners, up_direction
+    from .viewpoints import up_direction
+    from .viz import linemap_corners
 
     fig = init_figure(height, title)
     plot_linemap(fig, linemap)

@@ -174,7 +174,7 @@ def test_the_planes_code_holds_everything_the_plane_step_imports():
 
     root = Path(lipmap.__file__).parent
     assert all((root / name).exists() for name in PLANES_CODE)
-    todo = [root / "planes" / "optimize.py", root / "mapping" / "joint.py"]
+    todo = [root / "planes" / "train.py", root / "mapping" / "joint.py"]
     seen = set()
     while todo:
         f = todo.pop()

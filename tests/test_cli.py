@@ -102,7 +102,7 @@ def test_full_resolution_option_sets_the_plane_resolution(synthetic_root, tmp_pa
 
     from localization.cli import _mapping_conf, build_parser
     from lipmap.mapping.pipeline import get_conf
-    from lipmap.planes.optimize import PlaneOptConfig
+    from lipmap.planes.config import PlaneOptConfig
 
     def planes(**kw):
         return PlaneOptConfig.preset(get_conf(_mapping_conf(Namespace(preset="fast", keyframes=None, **kw))).planes)

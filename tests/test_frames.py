@@ -50,7 +50,9 @@ def test_plane_optimization_is_the_same_whatever_the_target_cache_size(synthetic
     """Targets rebuilt after eviction are the same tensors, so a tiny cache changes nothing but time."""
     from lipmap.datasets import load_scene
     from lipmap.planes.init import PlaneInitConfig, init_planes
-    from lipmap.planes.optimize import PlaneOptConfig, TargetStore, optimize_planes
+    from lipmap.planes.config import PlaneOptConfig
+    from lipmap.planes.targets import TargetStore
+    from lipmap.planes.train import optimize_planes
 
     torch.set_num_threads(1)
     scene = load_scene("synthetic", synthetic_root, "room-s3")
@@ -70,7 +72,9 @@ def test_plane_optimization_is_the_same_whatever_the_target_cache_size(synthetic
 def test_a_fixed_iteration_budget_is_sampled_over_the_views_in_epochs(synthetic_root):
     from lipmap.datasets import load_scene
     from lipmap.planes.init import PlaneInitConfig, init_planes
-    from lipmap.planes.optimize import PlaneOptConfig, Schedule, TargetStore, optimize_planes
+    from lipmap.planes.config import PlaneOptConfig
+    from lipmap.planes.targets import TargetStore
+    from lipmap.planes.train import Schedule, optimize_planes
 
     assert (Schedule.of(PlaneOptConfig(iterations=100), 30).max_iters, Schedule.of(PlaneOptConfig(iterations=100), 30).n_epochs) == (100, 4)
     assert (Schedule.of(PlaneOptConfig(epochs=3), 30).max_iters, Schedule.of(PlaneOptConfig(epochs=3), 30).n_epochs) == (90, 3)
@@ -96,7 +100,8 @@ def test_a_fixed_iteration_budget_is_sampled_over_the_views_in_epochs(synthetic_
 
 
 def test_the_fast_budget_is_the_same_whatever_the_views_and_epochs_can_cap_it():
-    from lipmap.planes.optimize import PlaneOptConfig, Schedule
+    from lipmap.planes.config import PlaneOptConfig
+    from lipmap.planes.train import Schedule
 
     fast = PlaneOptConfig.preset("fast-lines")
     assert Schedule.of(fast, 30).max_iters == 3600 and Schedule.of(fast, 30).n_epochs == 120
@@ -117,7 +122,9 @@ def test_prune_and_split_rounds_last_restructure_every_iterations_and_at_least_a
     trained on every view."""
     from lipmap.datasets import load_scene
     from lipmap.planes.init import PlaneInitConfig, init_planes
-    from lipmap.planes.optimize import PlaneOptConfig, TargetStore, optimize_planes
+    from lipmap.planes.config import PlaneOptConfig
+    from lipmap.planes.targets import TargetStore
+    from lipmap.planes.train import optimize_planes
 
     torch.set_num_threads(1)
     scene = load_scene("synthetic", synthetic_root, "room-s3")

@@ -17,9 +17,11 @@ import torch
 from lipmap.mapping.extract import ExtractConfig, extract_observations, merge_edges
 from lipmap.mapping.pipeline import get_conf, lipmap_linemap
 from lipmap.mapping.supervision import LineSupervision
+from lipmap.planes.config import PlaneOptConfig
 from lipmap.planes.init import DepthFrame
-from lipmap.planes.optimize import PlaneOptConfig, optimize_planes, prepare_targets
 from lipmap.planes.primitives import Planes, rotmat_to_quat
+from lipmap.planes.targets import prepare_targets
+from lipmap.planes.train import optimize_planes
 from lipmap.testing import SMALL_CAMERA, raycast_depth, rect
 from scipy.spatial.transform import Rotation
 

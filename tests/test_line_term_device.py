@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from lipmap.mapping.assign import best_edges, best_edges_torch
+from lipmap.mapping.assign import best_edges
 from lipmap.mapping.pipeline import get_conf, line_supervision
 from lipmap.mapping.supervision import _first_of_each_pair
 from lipmap.planes import Planes
 from lipmap.planes.init import DepthFrame
-from lipmap.planes.optimize import PlaneOptConfig, prepare_targets
+from lipmap.planes.config import PlaneOptConfig
 from lipmap.planes.render import rasterize_planes
+from lipmap.planes.targets import prepare_targets
 from lipmap.testing import raycast_depth
 from test_joint_optimization import _planes, panel_scene
 from test_mapping_extract import detected
@@ -21,8 +22,9 @@ from test_raycast_fused import random_planes
 
 
 @pytest.mark.parametrize("reduce", ["max", "mean"])
-def test_best_edges_torch_is_best_edges(reduce):
-    """The same edge, angle and distance for every (plane, line) row, planes behind the camera included."""
+def test_best_edges_on_tensors_is_best_edges_on_arrays(reduce):
+    """Tensors (the training device's path) and arrays (extraction, localization): the same edge, angle, distance and
+    projected edge for every (plane, line) row, planes behind the camera included."""
     _, views = panel_scene()
     v = views[0]
     rng = np.random.default_rng(3)
@@ -31,13 +33,15 @@ def test_best_edges_torch_is_best_edges(reduce):
     plane = rng.integers(0, 40, 500)
     lines = rng.uniform(0, [v.camera.width, v.camera.height] * 2, (500, 4))
     T = np.asarray(v.cam_from_world, dtype=np.float64)
-    e_np, a_np, d_np, _ = best_edges(corners.numpy(), plane, lines, T, v.camera, reduce)
-    e_t, a_t, d_t = best_edges_torch(corners, torch.as_tensor(plane), torch.as_tensor(lines), torch.as_tensor(T),
-                                     v.camera, reduce)
+    e_np, a_np, d_np, p_np = best_edges(corners.numpy(), plane, lines, T, v.camera, reduce)
+    e_t, a_t, d_t, p_t = best_edges(corners, torch.as_tensor(plane), torch.as_tensor(lines), torch.as_tensor(T),
+                                    v.camera, reduce)
+    assert isinstance(e_np, np.ndarray) and torch.is_tensor(e_t)
     assert np.isinf(d_np).any() and np.isfinite(d_np).mean() > 0.5
     assert np.array_equal(e_t.numpy(), e_np)
     np.testing.assert_allclose(a_t.numpy(), a_np, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(d_t.numpy(), d_np, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(p_t.numpy(), p_np, rtol=1e-12, atol=1e-9)  # NaN where the edge does not project
 
 
 def test_each_line_plane_pair_once_under_the_gate():
@@ -98,7 +102,8 @@ def test_cuda_training_step_with_the_line_term_syncs_once():
     torch's sync debug mode warns at most once (the renderer's pair count)."""
     import warnings
 
-    from lipmap.planes.optimize import Schedule, _EpochStats, _make_optimizer, _train_view
+    from lipmap.planes.optimizer import _make_optimizer
+    from lipmap.planes.train import Schedule, _EpochStats, _train_view
 
     corners_true, views = panel_scene()
     v = views[0]

@@ -9,7 +9,10 @@ import pytest
 import torch
 
 from lipmap.planes import Planes, rasterize_planes
-from lipmap.planes.optimize import PlaneOptConfig, PlaneIndexMap, ViewTarget, optimize_planes, prune_and_split
+from lipmap.planes.config import PlaneOptConfig
+from lipmap.planes.structure import PlaneIndexMap, prune_and_split
+from lipmap.planes.targets import ViewTarget
+from lipmap.planes.train import optimize_planes
 from lipmap.poses import make_T
 from lipmap.scene import Camera
 
@@ -135,7 +138,7 @@ class TestBadInput:
     def test_non_finite_loss_skips_the_step_on_the_device(self):
         """A non-finite loss leaves parameters, Adam's moments and its step count as they were, without the host
         reading the loss: the fused Adam skips the step (its found_inf)."""
-        from lipmap.planes.optimize import _apply_step, _make_optimizer
+        from lipmap.planes.optimizer import _apply_step, _make_optimizer
 
         params = [t.clone().requires_grad_() for t in noisy_wall_planes().tensors()]
         opt = _make_optimizer(params, small_conf(epochs=1))
@@ -173,7 +176,7 @@ def test_fit_planes_synthetic_query_depth(synthetic_root, tmp_path):
     from lipmap.datasets import load_scene
     from lipmap.planes import load_planes
     from lipmap.planes.check import check_png, rendered_depth_errors
-    from lipmap.planes.optimize import fit_planes
+    from lipmap.planes.train import fit_planes
 
     scene = load_scene("synthetic", synthetic_root, "room-s3")
     path = fit_planes(scene, tmp_path, PlaneOptConfig.preset("fast", progress=False))
@@ -198,7 +201,7 @@ def test_fit_planes_redkitchen_query_depth(redkitchen_root, tmp_path):
     from lipmap.datasets import load_scene
     from lipmap.planes import load_planes
     from lipmap.planes.check import rendered_depth_errors
-    from lipmap.planes.optimize import fit_planes
+    from lipmap.planes.train import fit_planes
 
     scene = load_scene("7scenes", redkitchen_root, "redkitchen")
     path = fit_planes(scene, tmp_path, PlaneOptConfig.preset("fast", progress=False))
@@ -225,7 +228,7 @@ def test_fine_iterations_train_the_last_steps_at_full_resolution(synthetic_root)
     no-op where the working resolution already is the views' own."""
     from lipmap.datasets import load_scene
     from lipmap.errors import InputError
-    from lipmap.planes.optimize import prepare_targets
+    from lipmap.planes.targets import prepare_targets
 
     views = load_scene("synthetic", synthetic_root, "room-s3").mapping[:3]
     W, H = views[0].camera.width, views[0].camera.height
@@ -243,7 +246,7 @@ def test_fine_iterations_train_the_last_steps_at_full_resolution(synthetic_root)
     assert [s[2] for s in seen] == [W // 2] * 4 + [W] * 2
 
     # the coarse targets are dropped when the fine steps begin (they are not used again); without fine steps they stay
-    from lipmap.planes.optimize import TargetStore
+    from lipmap.planes.targets import TargetStore
 
     store = TargetStore(views, conf)
     optimize_planes(store, noisy_wall_planes(), conf)

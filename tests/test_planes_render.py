@@ -1,5 +1,5 @@
-"""Fast plane renderer (the default backend: Warp for float32 where installed, torch otherwise) vs. its all-pairs
-twin (values and gradients), lambda schedule, edge cases."""
+"""Fast plane renderer (the default backend: Warp for float32 where installed, torch otherwise) vs. a brute-force
+all-pairs oracle (values, and its hand-derived gradients against autograd), lambda schedule, edge cases."""
 from __future__ import annotations
 
 import math
@@ -9,12 +9,65 @@ import pytest
 import torch
 
 from lipmap.planes import Planes, lambda_schedule, rasterize_planes, render_planes
-from lipmap.planes._torch_impl import _render_all_pairs
-from lipmap.planes.primitives import SPLAT_MARGIN, WEIGHT_EPS
+from lipmap.geometry import ray_plane_intersection
+from lipmap.planes.primitives import (MAX_HITS, NEAR, R_MAX, R_MIN, SPLAT_MARGIN, TRANSMITTANCE_EPS, WEIGHT_EPS,
+                                     quat_to_rotmat)
 from lipmap.scene import Camera
 
 INTR = (60.0, 60.0, 32.0, 24.0)
 W, H = 64, 48
+
+
+def render_all_pairs(center, quat, radii, cam_from_world, intrinsics, width, height, lam, max_hits=MAX_HITS, near=NEAR):
+    """The paper's appendix A literally, as the oracle of the renderers: every pixel ray against every plane, the
+    ``max_hits`` nearest intersections with splat weight > WEIGHT_EPS composited front to back, differentiated by
+    autograd. O(pixels x planes): for test scenes only. Written apart from the renderer's own arithmetic (matrix
+    products, :func:`lipmap.geometry.ray_plane_intersection`), so it checks it rather than repeats it.
+
+    Returns depth (H, W), normal (H, W, 3) facing the camera, alpha (H, W).
+    """
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    dev, dt = center.device, center.dtype
+    T = cam_from_world.to(device=dev, dtype=dt)
+    c = center @ T[:3, :3].T + T[:3, 3]  # (K, 3) camera frame
+    Rc = T[:3, :3] @ quat_to_rotmat(quat)  # (K, 3, 3): columns X, Y, normal
+    ax, ay, n = Rc[..., 0], Rc[..., 1], Rc[..., 2]
+    n = torch.where(((n * c).sum(-1) > 0)[:, None], -n, n)  # facing the camera
+    r = radii.clamp(R_MIN, R_MAX)
+    u = (torch.arange(width, device=dev, dtype=dt) + 0.5 - cx) / fx
+    v = (torch.arange(height, device=dev, dtype=dt) + 0.5 - cy) / fy
+    vv, uu = torch.meshgrid(v, u, indexing="ij")
+    d = torch.stack([uu, vv, torch.ones_like(uu)], -1).reshape(-1, 1, 3)  # (P, 1, 3), z = 1: t is the depth
+    t = ray_plane_intersection(torch.zeros_like(d), d, c[None], n[None])  # (P, K)
+    finite = torch.isfinite(t)
+    t = torch.where(finite, t, torch.zeros_like(t))  # keeps NaN out of the backward pass
+    p = t[..., None] * d - c[None]
+    px, py = (p * ax[None]).sum(-1), (p * ay[None]).sum(-1)
+
+    def axis_weight(x, r_pos, r_neg):  # 1 inside [-r_neg, r_pos], 2 sigmoid(lam (r - |x|)) outside
+        z = lam * (torch.where(x > 0, r_pos, r_neg) - x.abs())
+        return torch.where(z >= 0, torch.ones_like(z), 2 * torch.sigmoid(z))
+
+    w = torch.minimum(axis_weight(px, r[:, 0], r[:, 1]), axis_weight(py, r[:, 2], r[:, 3]))
+    valid = finite & (t > near) & (w > WEIGHT_EPS)
+    key = torch.where(valid, t, torch.full_like(t, float("inf"))).detach()
+    k = min(max_hits, key.shape[1])
+    key_sel, idx = torch.topk(key, k, dim=1, largest=False, sorted=True)
+    ok = torch.isfinite(key_sel)
+    w_sel = torch.where(ok, w.gather(1, idx), torch.zeros_like(key_sel))
+    t_sel = torch.where(ok, t.gather(1, idx), torch.zeros_like(key_sel))
+    n_sel = n[idx]
+    P = d.shape[0]
+    depth, alpha = torch.zeros(P, device=dev, dtype=dt), torch.zeros(P, device=dev, dtype=dt)
+    normal, trans = torch.zeros(P, 3, device=dev, dtype=dt), torch.ones(P, device=dev, dtype=dt)
+    for j in range(k):
+        wj = torch.where(ok[:, j] & (trans.detach() >= TRANSMITTANCE_EPS), w_sel[:, j], torch.zeros_like(trans))
+        contrib = trans * wj
+        depth = depth + contrib * t_sel[:, j]
+        normal = normal + contrib[:, None] * n_sel[:, j]
+        alpha = alpha + contrib
+        trans = trans * (1 - wj)
+    return depth.reshape(height, width), normal.reshape(height, width, 3), alpha.reshape(height, width)
 
 
 def random_planes(K, seed=1, dtype=torch.float64):
@@ -42,7 +95,7 @@ def _both(planes, lam, T=None, tile_size=8):
     P1 = [t.clone().requires_grad_() for t in planes.tensors()]
     P2 = [t.clone().requires_grad_() for t in planes.tensors()]
     out = rasterize_planes(*P1, T, INTR, W, H, lam, tile_size=tile_size)
-    ref = _render_all_pairs(*P2, T, INTR, W, H, lam)
+    ref = render_all_pairs(*P2, T, INTR, W, H, lam)
     return P1, P2, out, ref
 
 

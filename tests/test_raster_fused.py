@@ -15,8 +15,8 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from lipmap.errors import InputError
 from lipmap.planes import Planes, rasterize_planes
 from lipmap.planes import raster_warp
-from lipmap.planes._torch_impl import _render_all_pairs
 from lipmap.planes.primitives import NEAR, quat_to_rotmat
+from test_planes_render import render_all_pairs
 
 INTR = (60.0, 60.0, 32.0, 24.0)
 W, H = 64, 48
@@ -162,11 +162,11 @@ class TestFusedAgainstTorchTwin:
         assert torch.equal(a.hits, b.hits)
         torch.testing.assert_close(a.depth, b.depth, atol=0, rtol=0)
 
-    def test_against_the_all_pairs_twin(self):
+    def test_against_the_all_pairs_oracle(self):
         planes = occlusion_scene()
         P = [t.clone().requires_grad_() for t in planes.tensors()]
         out = rasterize_planes(*P, torch.eye(4), INTR, W, H, 300.0, backend="warp")
-        d2, n2, a2 = _render_all_pairs(*planes.tensors(), torch.eye(4), INTR, W, H, 300.0)
+        d2, n2, a2 = render_all_pairs(*planes.tensors(), torch.eye(4), INTR, W, H, 300.0)
         torch.testing.assert_close(out.depth, d2, atol=1e-5, rtol=0)
         torch.testing.assert_close(out.normal, n2, atol=1e-5, rtol=0)
 
@@ -321,7 +321,7 @@ class TestEdgeCases:
     @needs_warp
     @pytest.mark.parametrize("near", [0.1, 0.3])
     def test_near_plane_setting(self, near):
-        """``near`` (the reference's 0.1 m) moves the clipping in both backends and the all-pairs twin alike: the
+        """``near`` (the reference's 0.1 m) moves the clipping in both backends and the all-pairs oracle alike: the
         parts of the planes nearer than it vanish, what lies behind it renders as with the default."""
         # a slanted plane from z = 0.035 to 0.245 m across the image, and a wall behind it
         p = Planes.from_normals(np.array([[0.0, 0.0, 0.14], [0.0, 0.0, 0.8]]), np.array([[1.5, 0.0, -1.0], [0, 0, -1.0]]),
@@ -342,14 +342,30 @@ class TestEdgeCases:
         assert bool((first_near[cut] == 1).all())  # the wall behind shows through
         far = (first_base >= 0) & (d_base > near * 1.2) & (base.alpha > 0.999)
         assert bool(far.any()) and torch.equal(first_near[far], first_base[far])
-        d_all, _, _ = _render_all_pairs(*planes.tensors(), torch.eye(4), INTR, W, H, 1500.0, near=near)
+        d_all, _, _ = render_all_pairs(*planes.tensors(), torch.eye(4), INTR, W, H, 1500.0, near=near)
         torch.testing.assert_close(d_all, d_near, atol=1e-4, rtol=0)
 
-    def test_near_plane_must_be_finite_and_not_negative(self):
+    @pytest.mark.parametrize("backend", ["torch", pytest.param("warp", marks=needs_warp)])
+    def test_near_plane_must_be_finite_and_positive(self, backend):
+        """A near plane at z <= 0 is refused where it enters, with a ValueError naming it: at 0 the screen boxes
+        would divide by it."""
+        from lipmap.planes.config import PlaneOptConfig
+        from lipmap.planes.render import render_planes, select_hits
+        from lipmap.scene import Camera
+
         p = random_planes(3)
-        for near in (-0.1, float("inf"), float("nan")):
-            with pytest.raises(InputError, match="near plane"):
-                rasterize_planes(*p.tensors(), torch.eye(4), INTR, W, H, 300.0, near=near)
+        for near in (0.0, -0.0, -0.1, float("inf"), float("nan")):
+            with pytest.raises(ValueError, match="near plane must lie at a finite z > 0"):
+                rasterize_planes(*p.tensors(), torch.eye(4), INTR, W, H, 300.0, backend=backend, near=near)
+            with pytest.raises(ValueError, match="near plane"):
+                render_planes(p, Camera(W, H, INTR), np.eye(4), 300.0, backend=backend, near=near)
+            with pytest.raises(ValueError, match="near plane"):
+                select_hits(*p.tensors(), torch.eye(4), INTR, W, H, 300.0, near=near)
+            with pytest.raises(ValueError, match="near plane"):
+                PlaneOptConfig.preset("paper", near=near)
+        # the smallest positive near plane renders
+        out = rasterize_planes(*p.tensors(), torch.eye(4), INTR, W, H, 300.0, backend=backend, near=1e-6)
+        assert out.n_pairs > 0 and PlaneOptConfig.preset("fast", near=1e-6).near == 1e-6
 
     @needs_warp
     def test_float64_and_too_many_hits_fall_back_or_fail_clearly(self):
@@ -417,8 +433,10 @@ def test_a_training_step_syncs_once():
     """A whole plane-loss training step (render, masked-mean losses, backward, fused Adam, re-centring, the round's
     statistics) waits for the device only for the renderer's pair count. With boolean-indexed means, any() checks, a
     float() of the loss and an unfused Adam it waited 14 times (fast and paper alike)."""
-    from lipmap.planes.optimize import (PlaneOptConfig, Schedule, ViewTarget, _EpochStats, _live, _make_optimizer,
-                                        _train_view)
+    from lipmap.planes.config import PlaneOptConfig
+    from lipmap.planes.optimizer import _live, _make_optimizer
+    from lipmap.planes.targets import ViewTarget
+    from lipmap.planes.train import Schedule, _EpochStats, _train_view
     from lipmap.scene import Camera
 
     params = _live(random_planes(60))

@@ -11,10 +11,13 @@ from lipmap.mapping.joint import line_supervision
 from lipmap.mapping.losses import assigned_edges, line_loss, line_loss_terms
 from lipmap.mapping.pipeline import get_conf
 from lipmap.mapping.supervision import LineSupervision
-from lipmap.planes.optimize import (PlaneOptConfig, Schedule, ViewTarget, _apply_step, _EpochStats, _make_optimizer,
-                                    _restructure, plane_loss, render_target)
+from lipmap.planes.config import PlaneOptConfig
+from lipmap.planes.losses import plane_loss
+from lipmap.planes.optimizer import _apply_step, _make_optimizer
 from lipmap.planes.primitives import Planes
 from lipmap.planes.render import RenderOutput, rasterize_planes
+from lipmap.planes.targets import ViewTarget
+from lipmap.planes.train import Schedule, _EpochStats, _restructure, render_target
 from lipmap.scene import Camera, View
 from lipmap.testing import rect
 

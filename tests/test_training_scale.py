@@ -15,8 +15,10 @@ from lipmap.mapping.extract import ExtractConfig, extract_observations, visible_
 from lipmap.mapping.pipeline import get_conf
 from lipmap.mapping.supervision import LineSupervision
 from lipmap.planes.init import DepthFrame
-from lipmap.planes.optimize import PlaneOptConfig, optimize_planes, prepare_targets
+from lipmap.planes.config import PlaneOptConfig
 from lipmap.planes.render import render_view
+from lipmap.planes.targets import prepare_targets
+from lipmap.planes.train import optimize_planes
 from lipmap.scene import View
 from lipmap.testing import SMALL_CAMERA, raycast_depth
 from test_joint_optimization import _planes, _torch_threads, panel_scene
@@ -140,7 +142,7 @@ def test_training_camera_is_the_targets_and_the_line_terms():
     """One training camera per view: the line term's regions sit on the target's grid, its y scaled by the height's
     factor. At 1752x1168 (ScanNet++ DSLR) the automatic downscale of 5 gives 350x234, while a width ratio applied to
     the height rounds to 233 (and scaled the lines' y by the x factor: up to 0.67 training pixels off)."""
-    from lipmap.planes.optimize import training_camera
+    from lipmap.planes.targets import training_camera
     from lipmap.scene import Camera
 
     full = Camera(1752, 1168, (1400.0, 1400.0, 876.0, 584.0))

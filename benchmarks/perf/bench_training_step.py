@@ -38,9 +38,9 @@ DATA = (REPO / ".." / "shared" / "data" / "7scenes-redkitchen-mini").resolve()
 HEADER = ["run", "renderer", "resolution", "ms per iteration", "render (forward)", "line term", "of it: first hits",
           "backward + Adam", "plane loss", "syncs per iteration", "torch operations per iteration"]
 # (column, the file and function whose cumulative time it is)
-PARTS = [("render (forward)", ("optimize.py", "render_target")), ("line term", ("supervision.py", "__call__")),
-         ("of it: first hits", ("supervision.py", "_first_hits")), ("backward + Adam", ("optimize.py", "_apply_step")),
-         ("plane loss", ("optimize.py", "plane_loss"))]
+PARTS = [("render (forward)", ("train.py", "render_target")), ("line term", ("supervision.py", "__call__")),
+         ("of it: first hits", ("supervision.py", "_first_hits")), ("backward + Adam", ("optimizer.py", "_apply_step")),
+         ("plane loss", ("losses.py", "plane_loss"))]
 
 
 def measure(args) -> list[dict]:
@@ -51,9 +51,11 @@ def measure(args) -> list[dict]:
     from lipmap.mapping.joint import _plane_settings, line_supervision
     from lipmap.mapping.keyframes import keyframe_views
     from lipmap.mapping.pipeline import _lines_by_view, detect_or_import_lines, get_conf
-    from lipmap.planes import optimize as opt_mod
+    from lipmap.planes import train
     from lipmap.planes.init import init_planes
-    from lipmap.planes.optimize import TargetStore, optimize_planes
+    from lipmap.planes.optimizer import _make_optimizer
+    from lipmap.planes.targets import TargetStore
+    from lipmap.planes.train import optimize_planes
     from test_raster_fused import CountDispatch
 
     torch.set_num_threads(args.threads)
@@ -88,12 +90,12 @@ def measure(args) -> list[dict]:
                 cum[key] = cum.get(key, 0.0) + ct
         # one iteration's syncs
         params = [p.clone(memory_format=torch.contiguous_format).requires_grad_() for p in planes.tensors()]
-        sched = opt_mod.Schedule.of(run, len(targets))
-        opt = opt_mod._make_optimizer(params, run)
-        st = opt_mod._EpochStats.zeros(len(params[0]), params[0].device)
-        opt_mod._train_view(params, opt, targets[0], 0, sched, sup, st)
+        sched = train.Schedule.of(run, len(targets))
+        opt = _make_optimizer(params, run)
+        st = train._EpochStats.zeros(len(params[0]), params[0].device)
+        train._train_view(params, opt, targets[0], 0, sched, sup, st)
         with CountDispatch() as n:
-            opt_mod._train_view(params, opt, targets[1], 1, sched, sup, st)
+            train._train_view(params, opt, targets[1], 1, sched, sup, st)
         row = {"run": args.tag or "this commit", "renderer": os.environ.get("LIPMAP_RENDER_BACKEND", "auto"),
                "resolution": label,
                "ms per iteration": round(1000 * total, 1), "syncs per iteration": n.syncs,

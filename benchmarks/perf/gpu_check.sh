@@ -4,7 +4,7 @@
 # https://download.pytorch.org/whl/cu126"`; warp-lang is a dependency):
 #   1. the renderer tests on CUDA (the fused kernels against the torch twin; one step under
 #      torch.cuda.set_sync_debug_mode, at most one sync; the first-hit kernel and the line term on the device, a whole
-#      training step with the line term under set_sync_debug_mode);
+#      training step with the line term under set_sync_debug_mode; the kernels under a side torch.cuda.Stream);
 #   2. per training step of each renderer (the torch one it replaced, read from git; today's torch; Warp): kernel
 #      launches (profiler), host syncs (set_sync_debug_mode("warn")), ms (median of 20 by CUDA events), at
 #      640x480 x 10,000 and 320x240 x 2,000 planes, lambda 1500 and 300;
@@ -38,7 +38,7 @@ echo "card: $CARD | commit $COMMIT | $(date -u '+%F %H:%M UTC')" | tee "$SUMMARY
 echo "== 1. renderer tests on $DEVICE" | tee -a "$SUMMARY"
 t0=$SECONDS
 $PY -m pytest tests/test_raster_fused.py tests/test_planes_render.py tests/test_raycast_fused.py \
-    tests/test_line_term_device.py -q -p no:cacheprovider 2>&1 | tail -3 \
+    tests/test_line_term_device.py tests/test_warp_stream.py -q -p no:cacheprovider 2>&1 | tail -3 \
     | tee -a "$SUMMARY"
 echo "tests: $((SECONDS - t0)) s (includes compiling the Warp kernels for $DEVICE) [$CARD]" | tee -a "$SUMMARY"
 

@@ -4,12 +4,12 @@ Planes (Sec. 3.1 representation, Sec. 3.3 plane loss and optimization; appendix 
     plane primitives          lipmap.planes.primitives.Planes (centre, quaternion, radii x+ x- y+ y-)
     plane initialization      lipmap.planes.init.init_planes (TSDF fusion -> decimated mesh -> one plane per face)
     differentiable renderer   lipmap.planes.render.rasterize_planes (selection: select_hits; compositing:
-                              composite_hits; pure-torch twin: lipmap.planes._torch_impl)
-    plane loss                lipmap.planes.optimize.plane_loss (2 * depth L1 + 5 * normal L1 and 1 - cos)
-    optimization loop         lipmap.planes.optimize.optimize_planes (one view per iteration, Adam,
+                              composite_hits; fused Warp twin: lipmap.planes.raster_warp)
+    plane loss                lipmap.planes.losses.plane_loss (2 * depth L1 + 5 * normal L1 and 1 - cos)
+    optimization loop         lipmap.planes.train.optimize_planes (one view per iteration, Adam,
                               re-centring; prune and split once per epoch, or every
-                              restructure_every iterations if longer: prune_and_split)
-    the plane step            lipmap.planes.optimize.fit_planes (init + optimize -> planes.h5)
+                              restructure_every iterations if longer: structure.prune_and_split)
+    the plane step            lipmap.planes.train.fit_planes (init + optimize -> planes.h5)
 
 Lines (Sec. 3.2 assignment, Sec. 3.3 line loss, Sec. 3.4 finalization; appendix "Global Line Merging"):
     line-to-edge assignment   lipmap.mapping.assign: line_regions (1-px regions), PlaneRaycaster (first hit),

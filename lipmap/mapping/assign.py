@@ -18,6 +18,10 @@ EDGE_VERTS = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
 
 def corner_edges(corners):
     """(K, 4, 3) corners -> (K, 4, 2, 3) edges e1=(v1,v2), e2=(v2,v3), e3=(v3,v4), e4=(v4,v1) (numpy or torch)."""
+    if geo._is_torch(corners):
+        import torch
+
+        return corners[:, torch.as_tensor(EDGE_VERTS, device=corners.device)]
     return corners[:, EDGE_VERTS]
 
 
@@ -159,80 +163,61 @@ def plane_or_input_depth(plane_z: np.ndarray, input_z: Optional[np.ndarray], tol
     return np.where(use_input, input_z, plane_z)
 
 
-def best_edges(corners: np.ndarray, plane_idx: np.ndarray, lines2d: np.ndarray, cam_from_world, camera,
-               dist_reduce: str = "max"):
+def best_edges(corners, plane_idx, lines2d, cam_from_world, camera, dist_reduce: str = "max"):
     """For each (hit plane, detected line) pair, the plane edge that explains the line.
 
     Of the four projected edges keep the two closest in angle to the detected line, then pick the one
     whose endpoints are nearer (mean distance) to the detected line's infinite line (paper Sec. 3.2).
 
+    One definition for NumPy arrays and for torch tensors on the training device (the same steps in either
+    namespace, for every row at once with no data-dependent shape): float64 in, float64 out, so both pick the same
+    edge.
+
     Args:
-        corners: :math:`(K, 4, 3)`; plane_idx: :math:`(P,)` (>= 0); lines2d: :math:`(P, 4)`.
+        corners: :math:`(K, 4, 3)`; plane_idx: :math:`(P,)` (>= 0); lines2d: :math:`(P, 4)`; cam_from_world:
+            :math:`(4, 4)`; all arrays, or all tensors (``corners`` needs no gradient).
 
     Returns:
         **edge_idx** :math:`(P,)` in 0..3, **angle** :math:`(P,)` rad and **dist** :math:`(P,)` px
         (the paper's d_ang and d_dist: the ``dist_reduce`` - "max", or "mean" as the reference code - of the
-        endpoint-to-line distances) of the chosen edge's projection, and the projected edges :math:`(P, 2, 2)`.
+        endpoint-to-line distances; inf where the edge does not project) of the chosen edge's projection, and the
+        projected edges :math:`(P, 2, 2)`; arrays or tensors, as given.
     """
+    xp = geo._xp(corners)
     P = len(plane_idx)
-    if P == 0:
-        z = np.zeros(0)
-        return np.zeros(0, int), z, z, np.zeros((0, 2, 2))
-    edges = corner_edges(np.asarray(corners, dtype=float)[plane_idx])  # (P, 4, 2, 3)
+    if xp is np:
+        if P == 0:
+            z = np.zeros(0)
+            return np.zeros(0, int), z, z, np.zeros((0, 2, 2))
+        corners, lines2d = np.asarray(corners, dtype=float), np.asarray(lines2d, dtype=float)
+    edges = corner_edges((corners if xp is np else corners.detach())[plane_idx])  # (P, 4, 2, 3)
     proj, valid = geo.project_segments(edges.reshape(-1, 2, 3), cam_from_world, camera)
     proj = proj.reshape(P, 4, 2, 2)
     valid = valid.reshape(P, 4)
-    det = np.asarray(lines2d, dtype=float).reshape(P, 1, 2, 2)
+    det = lines2d.reshape(P, 1, 2, 2)
+    det = det if xp is np else det.to(proj.dtype)
+    inf = float("inf")
     with np.errstate(invalid="ignore"):
         ang = geo.angle_distance(proj, det)
         dmean = geo.perpendicular_distance(proj, det, reduce="mean")
-    ang = np.where(valid & np.isfinite(ang), ang, np.inf)
-    dmean = np.where(valid & np.isfinite(dmean), dmean, np.inf)
-    two = np.argsort(ang, axis=1, kind="stable")[:, :2]
-    d_two = np.take_along_axis(dmean, two, 1)
-    edge = np.take_along_axis(two, np.argmin(d_two, axis=1)[:, None], 1)[:, 0]
-    r = np.arange(P)
-    chosen = proj[r, edge]
-    with np.errstate(invalid="ignore"):
+        ang = xp.where(valid & xp.isfinite(ang), ang, inf)
+        dmean = xp.where(valid & xp.isfinite(dmean), dmean, inf)
+        two = _argsort_rows(ang)[:, :2]
+        edge = _take_rows(two, xp.argmin(_take_rows(dmean, two), 1)[:, None])[:, 0]
+        chosen = _take_rows(proj, edge[:, None, None, None])[:, 0]
         a = geo.angle_distance(chosen, det[:, 0])
         dmax = geo.perpendicular_distance(chosen, det[:, 0], reduce=dist_reduce)
-    a = np.where(np.isfinite(a), a, np.inf)
-    dmax = np.where(np.isfinite(dmax), dmax, np.inf)
-    return edge, a, dmax, chosen
+    return edge, xp.where(xp.isfinite(a), a, inf), xp.where(xp.isfinite(dmax), dmax, inf), chosen
 
 
-def best_edges_torch(corners, plane_idx, lines2d, cam_from_world, camera, dist_reduce: str = "max"):
-    """:func:`best_edges` on the training device: the same steps on tensors (its device twin; float64 in, float64
-    out, so both pick the same edge), for every row at once with no data-dependent shape.
+def _argsort_rows(x):
+    """Row-wise argsort, stable (of equal keys the lower index first: both namespaces pick the same edge)."""
+    return np.argsort(x, axis=1, kind="stable") if isinstance(x, np.ndarray) else x.argsort(dim=1, stable=True)
 
-    Args:
-        corners: :math:`(K, 4, 3)` tensor (no grad needed); plane_idx: :math:`(P,)` long (>= 0); lines2d:
-            :math:`(P, 4)` tensor; cam_from_world: :math:`(4, 4)` tensor.
 
-    Returns:
-        **edge_idx** :math:`(P,)` long, **angle** and **dist** :math:`(P,)` (inf where the edge does not project).
-    """
-    import torch
-
-    P = len(plane_idx)
-    ev = torch.as_tensor(EDGE_VERTS, device=corners.device)
-    edges = corners.detach()[plane_idx][:, ev]  # (P, 4, 2, 3)
-    proj, valid = geo.project_segments(edges.reshape(-1, 2, 3), cam_from_world, camera)
-    proj = proj.reshape(P, 4, 2, 2)
-    valid = valid.reshape(P, 4)
-    det = lines2d.reshape(P, 1, 2, 2).to(proj.dtype)
-    inf = torch.tensor(float("inf"), dtype=proj.dtype, device=proj.device)
-    ang = geo.angle_distance(proj, det)
-    dmean = geo.perpendicular_distance(proj, det, reduce="mean")
-    ang = torch.where(valid & torch.isfinite(ang), ang, inf)
-    dmean = torch.where(valid & torch.isfinite(dmean), dmean, inf)
-    two = torch.sort(ang, dim=1, stable=True).indices[:, :2]
-    d_two = torch.gather(dmean, 1, two)
-    edge = torch.gather(two, 1, torch.argmin(d_two, dim=1, keepdim=True))[:, 0]
-    chosen = torch.gather(proj, 1, edge[:, None, None, None].expand(-1, 1, 2, 2))[:, 0]
-    a = geo.angle_distance(chosen, det[:, 0])
-    dmax = geo.perpendicular_distance(chosen, det[:, 0], reduce=dist_reduce)
-    return edge, torch.where(torch.isfinite(a), a, inf), torch.where(torch.isfinite(dmax), dmax, inf)
+def _take_rows(x, idx):
+    """``x``'s entries at ``idx`` along axis 1 (broadcast), in either namespace."""
+    return np.take_along_axis(x, idx, 1) if isinstance(x, np.ndarray) else x.take_along_dim(idx, 1)
 
 
 def assign_lines(raycaster: PlaneRaycaster, corners, lines2d, cam_from_world, camera, pixels=None, line_idx=None,
@@ -306,10 +291,19 @@ def first_hit_torch(corners, origins, dirs, chunk: int = 2048):
         best_k = torch.full((P,), -1, dtype=torch.long, device=corners.device)
         for s in range(0, P if len(corners) else 0, chunk):
             t = _ray_rect_t(*frames, origins[s : s + chunk, None], dirs[s : s + chunk, None])  # (p, K)
-            tmin, kmin = t.min(dim=1)
-            best_t[s : s + chunk] = tmin
-            best_k[s : s + chunk] = torch.where(torch.isfinite(tmin), kmin, torch.full_like(kmin, -1))
+            best_k[s : s + chunk], best_t[s : s + chunk] = _nearest(t)
         return best_k, best_t
+
+
+def _nearest(t, planes=None):
+    """Per row of ray parameters ``t`` (P, M), the plane of the least finite one (the earliest column at a tie, as
+    the Warp kernel keeps it) and that parameter: (P,) long (-1 where none), (P,). ``planes`` (P, M): the plane of
+    each column (None: the column is the plane)."""
+    import torch
+
+    tmin, j = t.min(dim=1)
+    k = j if planes is None else planes.gather(1, j[:, None])[:, 0]
+    return torch.where(torch.isfinite(tmin), k, torch.full_like(k, -1)), tmin
 
 
 def _hit_backend(backend, corners) -> str:
@@ -323,14 +317,7 @@ def _hit_backend(backend, corners) -> str:
 def first_hit(corners, origins, dirs, backend=None):
     """The first rectangle (hard borders) each ray meets: :math:`(P,)` long, -1 where none. The Warp kernel where it
     runs (one thread per ray), else :func:`first_hit_torch`; ``backend`` as the renderer's."""
-    import torch
-
-    if _hit_backend(backend, corners) == "warp":
-        from ..planes import raycast_warp
-
-        with torch.no_grad():
-            return raycast_warp.first_hit(_rect_frames(corners), origins, dirs)
-    return first_hit_torch(corners, origins, dirs)[0]
+    return first_hit_in_render(corners, None, origins, dirs, None, backend)
 
 
 def first_hit_in_render(corners, candidates, origins, dirs, complete, backend=None):
@@ -342,8 +329,9 @@ def first_hit_in_render(corners, candidates, origins, dirs, complete, backend=No
     meets are cast against every plane (:func:`first_hit_torch`).
 
     Args:
-        corners: :math:`(K, 4, 3)` tensor; candidates: :math:`(P, M)` long, the render's hits (-1 padded);
-        origins, dirs: :math:`(P, 3)` world rays (dirs unit); complete: :math:`(P,)` bool, the lists not cut.
+        corners: :math:`(K, 4, 3)` tensor; candidates: :math:`(P, M)` long, the render's hits (-1 padded), or None
+            (every ray against every plane, :func:`first_hit`); origins, dirs: :math:`(P, 3)` world rays (dirs unit);
+            complete: :math:`(P,)` bool, the lists not cut (None with ``candidates`` None).
 
     Returns:
         plane index :math:`(P,)` long (-1 miss).
@@ -354,16 +342,15 @@ def first_hit_in_render(corners, candidates, origins, dirs, complete, backend=No
     import torch
 
     with torch.no_grad():
-        frames = _rect_frames(corners)
         if _hit_backend(backend, corners) == "warp":
             from ..planes import raycast_warp
 
-            return raycast_warp.first_hit(frames, origins, dirs, candidates, complete)
+            return raycast_warp.first_hit(_rect_frames(corners), origins, dirs, candidates, complete)
+        if candidates is None:
+            return first_hit_torch(corners, origins, dirs)[0]
         k = candidates.clamp(min=0)
-        t = _ray_rect_t(*(f[k] for f in frames), origins[:, None], dirs[:, None])  # (P, M)
-        t = torch.where(candidates >= 0, t, torch.full_like(t, float("inf")))
-        tmin, j = t.min(dim=1)
-        first = torch.where(torch.isfinite(tmin), candidates.gather(1, j[:, None])[:, 0], torch.full_like(j, -1))
+        t = _ray_rect_t(*(f[k] for f in _rect_frames(corners)), origins[:, None], dirs[:, None])  # (P, M)
+        first, tmin = _nearest(torch.where(candidates >= 0, t, torch.full_like(t, float("inf"))), candidates)
         redo = ~torch.isfinite(tmin) & ~complete
         if bool(redo.any()):
             first[redo] = first_hit_torch(corners, origins[redo], dirs[redo])[0]

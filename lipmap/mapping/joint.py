@@ -32,7 +32,7 @@ def line_supervision(lines_by_view: dict, conf):
 
 
 def _plane_settings(conf, lines_source=None):
-    from ..planes.optimize import PlaneOptConfig
+    from ..planes.config import PlaneOptConfig
 
     extra = {"line_term": line_supervision({}, conf).settings(), "lines": lines_settings(conf, lines_source)}
     return PlaneOptConfig.preset(conf.planes, seed=conf.seed), extra
@@ -41,7 +41,7 @@ def _plane_settings(conf, lines_source=None):
 def planes_stamp(scene, conf, lines_source=None):
     """The :class:`~lipmap.artifacts.Stamp` of the ``planes.h5`` that :func:`fit_planes_with_lines` makes for the
     mapping views of ``scene`` (after keyframe selection) with ``conf``."""
-    from ..planes.optimize import planes_stamp as stamp_of
+    from ..planes.train import planes_stamp as stamp_of
 
     pconf, extra = _plane_settings(conf, lines_source)
     return stamp_of(scene, pconf, extra)
@@ -56,10 +56,10 @@ def planes_variant_dir(parent, scene, conf, lines_source=None) -> Path:
 
 
 def fit_planes_with_lines(scene, lines_by_view: dict, out_dir: Path, conf, lines_source=None, overwrite=False):
-    """Joint line-plane optimization (:func:`lipmap.planes.optimize.fit_planes` with the line term);
+    """Joint line-plane optimization (:func:`lipmap.planes.train.fit_planes` with the line term);
     writes or reuses ``out_dir/planes.h5`` and ``planes.ply``. Returns Planes."""
     from ..planes import io as pio
-    from ..planes.optimize import fit_planes
+    from ..planes.train import fit_planes
 
     pconf, extra = _plane_settings(conf, lines_source)
     path = fit_planes(scene, out_dir, pconf, extra_loss=line_supervision(lines_by_view, conf), overwrite=overwrite,

@@ -37,7 +37,7 @@ class MappingConfig:
 
     preset: str = "fast"
     lines: str = "lsd"  # lipmap.lines2d preset
-    planes: object = "fast-lines"  # lipmap.planes.optimize preset name, or {"preset": name, **overrides}
+    planes: object = "fast-lines"  # lipmap.planes.config preset name, or {"preset": name, **overrides}
     line_weight: float = 3.0  # paper alpha_L 0.1; the robust loss below lets a higher weight help without bending planes
     pixels_per_line: int = 0  # every region pixel, each (line, first-hit plane) pair once (reference: 1 sampled pixel)
     group_loss: bool = False  # the paper's group loss; off in the reference code, ~1.6x the time for little gain
@@ -106,7 +106,7 @@ def mapping_stamp(scene, conf=None, method: str = "lipmap", lines_source=None) -
         settings["lift"] = asdict(lift_conf(conf.lift))
         settings["keyframes"] = asdict(conf.keyframes)  # lift maps the keyframes too
     else:
-        from ..planes.optimize import PlaneOptConfig
+        from ..planes.config import PlaneOptConfig
 
         settings["mapping"] = asdict(conf)
         settings["planes"] = {k: v for k, v in PlaneOptConfig.preset(conf.planes, seed=conf.seed).to_dict().items()

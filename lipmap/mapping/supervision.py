@@ -15,7 +15,7 @@ import torch
 
 from ..frames import DEFAULT_CAPACITY, LRU
 from ..planes.primitives import TRANSMITTANCE_EPS
-from .assign import best_edges_torch, first_hit, first_hit_in_render, line_regions, pixel_rays_world
+from .assign import best_edges, first_hit, first_hit_in_render, line_regions, pixel_rays_world
 from .depth_lookup import depth_window, nearest_depth_residual_torch
 from .losses import line_loss
 
@@ -111,7 +111,7 @@ class LineSupervision:
 
     def __call__(self, view, planes, iteration: int, render=None, target=None):
         """Line loss of ``view`` at the training resolution: that of ``target`` (the view's
-        :class:`~lipmap.planes.optimize.ViewTarget`, whose camera ``render`` was made with and whose sensor depth the
+        :class:`~lipmap.planes.targets.ViewTarget`, whose camera ``render`` was made with and whose sensor depth the
         gate reads); the view's own camera without one.
 
         Everything per iteration runs on the planes' device; on a GPU on fixed-size rows with masks, so that nothing
@@ -160,7 +160,7 @@ class LineSupervision:
             li, plane, keep = li[sel], plane[sel], keep[sel]
         plane_c = plane.clamp(min=0)
         det = g.lines[li]
-        edge, _, dist = best_edges_torch(corners.detach().to(torch.float64), plane_c, det, g.T, camera)
+        edge, _, dist, _ = best_edges(corners.detach().to(torch.float64), plane_c, det, g.T, camera)
         ok = keep & torch.isfinite(dist)
         if self.max_assign_frac > 0:  # an edge hopelessly far is another surface's: skip the assignment
             ok = ok & (dist < self.max_assign_frac * max(camera.width, camera.height))

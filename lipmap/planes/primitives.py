@@ -17,7 +17,7 @@ import torch
 
 from ..errors import InputError
 
-# Shared by the fast renderer, its all-pairs twin, the optimizer and the tests.
+# Shared by both renderer backends, the optimizer and the tests.
 R_MIN = 1e-3  # radii clamp (reference-code fact)
 R_MAX = 0.5
 WEIGHT_EPS = 1e-4  # intersections with splat weight <= this are dropped (paper, appendix A)

@@ -19,18 +19,20 @@ hundreds. Every pair is computed with the arithmetic of :func:`lipmap.planes.ren
 transcribed in ``_pair_geo`` and ``_weight``: the torch backend is this module's reference twin, and the
 tests hold both to the same hits. Float32 only.
 
-Warp is imported on first use: ``import lipmap`` works without it, and ``backend="auto"`` falls back
-to torch. Kernels compile on first launch per device (a few seconds; cached on disk afterwards).
+Warp is imported on first use (:mod:`lipmap.planes.warp_runtime`, which also launches the kernels):
+``import lipmap`` works without it, and ``backend="auto"`` falls back to torch. Kernels compile on first launch per
+device (a few seconds; cached on disk afterwards).
 """
 
-import contextlib
 import functools
 import math
-import os
 
 import torch
 
+from . import warp_runtime
 from .primitives import NEAR, R_MAX, R_MIN, SPLAT_MARGIN, TRANSMITTANCE_EPS, WEIGHT_EPS
+from .warp_runtime import device_name as _device, launch_chunks as _launch_chunks, n_chunks as _n_chunks
+from .warp_runtime import stream as _stream, view as _view
 
 MAX_HITS_CAP = 32  # the per-pixel hit list lives in registers: M <= 32 (the reference composites up to 30)
 INSTALL_HINT = "pip install warp-lang==1.19.0 (a dependency of lipmap), or pass backend='torch'"
@@ -60,31 +62,8 @@ def unsupported(device: torch.device, dtype: torch.dtype, max_hits: int) -> str 
 @functools.lru_cache(maxsize=None)
 def _kernels():
     """The compiled-on-demand kernels, or None without warp-lang."""
-    try:
-        import warp as wp
-    except ImportError:
-        return None
-    # Warp's greeting and its "module loaded" lines are INFO; this level is process-wide
-    wp.config.log_level = wp.LOG_WARNING
-    # Warp probes for a CUDA driver on init and prints a warning when there is none; a CPU-only machine is fine
-    with _quiet_stderr(not torch.cuda.is_available()):
-        wp.init()
-    return _define(wp)
-
-
-@contextlib.contextmanager
-def _quiet_stderr(active: bool):
-    if not active:
-        yield
-        return
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
-            yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
+    wp = warp_runtime.load()
+    return None if wp is None else _define(wp)
 
 
 def _define(wp):
@@ -551,61 +530,9 @@ def _define(wp):
                 fwd=_raster_fwd, bwd=_raster_bwd)
 
 
-def _device(t: torch.Tensor) -> str:
-    return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
-
-
-def _wa(wp, t: torch.Tensor, dtype=None):
-    """A Warp view of a contiguous torch tensor (no copy)."""
-    return wp.from_torch(t.contiguous(), dtype=dtype, requires_grad=False)
-
-
-def _view(wp, t: torch.Tensor, dtype=None):
-    """A Warp array descriptor of a contiguous torch tensor whose storage outlives the launch: no copy and no Python
-    array object (a step passes about 80 arrays; ``wp.array`` wrappers cost about 1 ms of it on a CPU)."""
-    if not t.is_contiguous():
-        raise ValueError("a Warp view needs a contiguous tensor")  # a copy would be freed before the kernel runs
-    return wp.from_torch(t, dtype=dtype, requires_grad=False, return_ctype=True)
-
-
 # the CPU reverse pass accumulates into this many gradient buffers (pixels interleaved), summed in order: a fixed
 # split, so the gradients do not depend on how many threads run it
 _CPU_GRAD_SPLIT = 4
-
-
-def _n_chunks(t: torch.Tensor) -> int:
-    """Launches per kernel: Warp runs a CPU launch on one thread, so the CPU work is split over torch's threads."""
-    return 1 if t.device.type == "cuda" else max(1, torch.get_num_threads())
-
-
-@functools.lru_cache(maxsize=None)
-def _pool(n: int):
-    from concurrent.futures import ThreadPoolExecutor
-
-    return ThreadPoolExecutor(max_workers=n, thread_name_prefix="lipmap-raster")
-
-
-def _launch_chunks(wp, kernel, dim_per_chunk: int, device: str, n: int, args_of, threads: int | None = None):
-    """Launch ``kernel`` as ``n`` interleaved chunks, ``args_of(chunk)`` giving each one's arguments, on ``threads``
-    threads (default ``n``).
-
-    CPU chunks run on the calling thread and ``threads - 1`` pool threads (a CPU launch releases the GIL), each
-    taking the next chunk not yet taken; their arguments are packed here, on the calling thread.
-    """
-    if dim_per_chunk == 0:
-        return
-    cmds = [wp.launch(kernel, dim=dim_per_chunk, device=device, inputs=args_of(h), record_cmd=True) for h in range(n)]
-    threads = min(n, threads or n)
-    todo = iter(cmds)  # next() on a list iterator is atomic under the GIL: each chunk runs once
-
-    def drain():
-        for cmd in todo:
-            cmd.launch()
-
-    helpers = [_pool(threads - 1).submit(drain) for _ in range(threads - 1)] if threads > 1 else []
-    drain()
-    for f in helpers:
-        f.result()
 
 
 def setup(center, quat, radii, T):
@@ -620,7 +547,7 @@ def setup(center, quat, radii, T):
     r = torch.empty(K, 4, dtype=torch.float32, device=dev)
     nc = torch.empty(K, dtype=torch.float32, device=dev)
     v3, v4 = wp.vec3, wp.vec4
-    wp.launch(kn["setup"], dim=K, device=_device(center), inputs=[
+    wp.launch(kn["setup"], dim=K, device=_device(center), stream=_stream(center), inputs=[
         _view(wp, center, v3), _view(wp, quat, v4), _view(wp, radii, v4), _view(wp, T), R_MIN, R_MAX,
         _view(wp, c, v3), _view(wp, ax, v3), _view(wp, ay, v3), _view(wp, n, v3), _view(wp, r, v4), _view(wp, nc)])
     return c, ax, ay, n, r, nc
@@ -635,7 +562,7 @@ def setup_backward(center, quat, radii, T, grads):
     center, quat, radii, T = (x.contiguous() for x in (center, quat, radii, T))
     grads = [g.contiguous() for g in grads]
     g_center, g_quat, g_radii = (torch.empty_like(x) for x in (center, quat, radii))  # contiguous, as their inputs
-    wp.launch(kn["setup_bwd"], dim=len(center), device=_device(center), inputs=[
+    wp.launch(kn["setup_bwd"], dim=len(center), device=_device(center), stream=_stream(center), inputs=[
         _view(wp, center, v3), _view(wp, quat, v4), _view(wp, radii, v4), _view(wp, T), R_MIN, R_MAX, len(grads[0]),
         *[_view(wp, g, ty) for g, ty in zip(grads, (v3, v3, v3, v3, v4))], _view(wp, g_center, v3),
         _view(wp, g_quat, v4), _view(wp, g_radii, v4)])
@@ -650,7 +577,7 @@ def recenter_(center, quat, radii) -> bool:
         return False
     kn = _kernels()
     wp = kn["wp"]
-    wp.launch(kn["recenter"], dim=len(center), device=_device(center), inputs=[
+    wp.launch(kn["recenter"], dim=len(center), device=_device(center), stream=_stream(center), inputs=[
         _view(wp, center.detach(), wp.vec3), _view(wp, quat.detach(), wp.vec4), _view(wp, radii.detach(), wp.vec4), R_MIN,
         R_MAX])
     return True
@@ -670,7 +597,7 @@ class _Raster(torch.autograd.Function):
         wp = kn["wp"]
         width, height, tile, lam, max_hits, near, dilate, intrinsics = dims
         dev, K, P = center.device, len(center), width * height
-        wdev = _device(center)
+        wdev, stream = _device(center), _stream(center)
         ntx, nty = -(-width // tile), -(-height // tile)
         v3, v4 = wp.vec3, wp.vec4
         c, ax, ay, n, r, nc = setup(center, quat, radii, T)
@@ -679,7 +606,7 @@ class _Raster(torch.autograd.Function):
         rect = torch.empty(K, 4, dtype=torch.int32, device=dev)
         count = torch.empty(K, dtype=torch.int32, device=dev)
         zmin = torch.empty(K, dtype=torch.float32, device=dev)
-        wp.launch(kn["bin"], dim=K, device=wdev, inputs=planes + [
+        wp.launch(kn["bin"], dim=K, device=wdev, stream=stream, inputs=planes + [
             dilate, fx, fy, cx, cy, width, height, tile, _view(wp, u), _view(wp, v), near, _view(wp, rect, wp.vec4i),
             _view(wp, count), _view(wp, zmin)])
         offset = torch.cumsum(count, 0, dtype=torch.int64)
@@ -687,7 +614,7 @@ class _Raster(torch.autograd.Function):
         keys = torch.empty(total, dtype=torch.int64, device=dev)
         pair_plane = torch.empty(total, dtype=torch.int32, device=dev)
         if total:
-            wp.launch(kn["emit"], dim=K, device=wdev, inputs=planes + [
+            wp.launch(kn["emit"], dim=K, device=wdev, stream=stream, inputs=planes + [
                 dilate, width, height, tile, _view(wp, u), _view(wp, v), near, _view(wp, rect, wp.vec4i), _view(wp, count),
                 _view(wp, offset), _view(wp, zmin), ntx, _view(wp, keys), _view(wp, pair_plane)])
         keys, order = torch.sort(keys)
@@ -706,7 +633,7 @@ class _Raster(torch.autograd.Function):
         outs = [_view(wp, hits), _view(wp, depth), _view(wp, alpha), _view(wp, normal, v3), _view(wp, seen)]
         tiles_per_chunk = -(-(len(start) - 1) // n_chunks)
         _launch_chunks(wp, kn["fwd"], tiles_per_chunk * tile * tile, wdev, n_chunks,
-                       lambda h: common + [h, n_chunks] + outs)
+                       lambda h: common + [h, n_chunks] + outs, stream=stream)
         ctx.save_for_backward(center, quat, radii, T, c, ax, ay, n, r, nc, u, v, hits)
         ctx.dims = dims
         ctx.mark_non_differentiable(hits, seen)
@@ -733,7 +660,7 @@ class _Raster(torch.autograd.Function):
         types = (v3, v3, v3, v3, v4)
         _launch_chunks(wp, kn["bwd"], -(-P // n_chunks), wdev, n_chunks,
                        lambda h: common + [h, n_chunks] + vs + [_view(wp, g[h], ty) for g, ty in zip(grads, types)],
-                       threads)
+                       threads, stream=_stream(c))  # autograd runs this on the forward's stream
         return (*setup_backward(center, quat, radii, T, grads), None, None, None, None)
 
 

@@ -13,7 +13,8 @@ import math
 
 import torch
 
-from .raster_warp import _device, _kernels, _launch_chunks, _n_chunks, _wa
+from .raster_warp import _kernels
+from .warp_runtime import device_name, launch_chunks, n_chunks, stream, wrap
 
 
 def unsupported(device: torch.device, dtype: torch.dtype) -> str | None:
@@ -102,10 +103,10 @@ def first_hit(frames, origins: torch.Tensor, dirs: torch.Tensor, candidates: tor
           else complete.to(device=dev, dtype=torch.int32))
     v3 = wp.vec3
     f = [x.detach().to(torch.float32) for x in frames]
-    args = [_wa(wp, f[0], v3), _wa(wp, f[1], v3), _wa(wp, f[2], v3), _wa(wp, f[3]), _wa(wp, f[4]), _wa(wp, f[5], v3),
-            _wa(wp, candidates.to(device=dev, dtype=torch.int64)), _wa(wp, cm),
-            _wa(wp, origins.detach().to(torch.float32), v3), _wa(wp, dirs.detach().to(torch.float32), v3), P]
-    n_chunks = _n_chunks(origins)
-    _launch_chunks(wp, kernel, -(-P // n_chunks), _device(origins), n_chunks,
-                   lambda h: args + [h, n_chunks, _wa(wp, out)])
+    args = [wrap(wp, f[0], v3), wrap(wp, f[1], v3), wrap(wp, f[2], v3), wrap(wp, f[3]), wrap(wp, f[4]),
+            wrap(wp, f[5], v3), wrap(wp, candidates.to(device=dev, dtype=torch.int64)), wrap(wp, cm),
+            wrap(wp, origins.detach().to(torch.float32), v3), wrap(wp, dirs.detach().to(torch.float32), v3), P]
+    chunks = n_chunks(origins)
+    launch_chunks(wp, kernel, -(-P // chunks), device_name(origins), chunks,
+                  lambda h: args + [h, chunks, wrap(wp, out)], stream=stream(origins))
     return out

@@ -16,10 +16,12 @@ here bin the planes into screen tiles first and only test a pixel against its ti
 - ``"auto"`` (the default; ``LIPMAP_RENDER_BACKEND`` overrides it): Warp where it is installed and the
   tensors are float32 on CPU or CUDA, torch otherwise.
 
-Both backends move the planes into the camera with the same arithmetic (:func:`_planes_in_camera`; Warp's
-``_setup_fwd`` is its transcription), compute every (pixel, plane) pair with the same arithmetic
-(:func:`_pair_terms`; Warp's ``_pair_geo``) and break depth ties by plane index, so they select the same hits.
-The all-pairs twin of both lives in :mod:`lipmap.planes._torch_impl` (``_render_all_pairs``).
+This module is the one torch reference of the renderer: the Warp kernels transcribe it, and the tests hold them
+to it. Each step has one definition here: the plane-to-camera setup (:func:`_planes_in_camera`; Warp's
+``_setup_fwd``), the (pixel, plane) pair (:func:`_pair_terms`; Warp's ``_pair_geo``), the selection of the
+first hits (:func:`select_hits`: nearest first, depth ties by plane index) and the compositing and its backward
+(:class:`_Composite`; Warp's ``_raster_fwd`` / ``_raster_bwd``), so both backends select the same hits. The tests
+check this reference in turn against a brute-force all-pairs render differentiated by autograd.
 """
 from __future__ import annotations
 
@@ -62,7 +64,7 @@ def lambda_schedule(iteration: int, max_iters: int, lam_min: float = 0.0, lam_ma
     """Sharpness of the splat fall-off: ``5 * min(20 * exp(iter / (max_iters // 10) - 1), 300)``.
 
     Starts at 5 * 20 / e = 36.8 (weight 1e-4 reached ~27 cm outside a rectangle) and saturates at
-    1500 (6.6 mm) from 37 % of the iterations on (reference-code schedule, see DESIGN.md).
+    1500 (6.6 mm) from 37 % of the iterations on (reference-code schedule, see docs/design.md).
     ``lam_min`` / ``lam_max`` clip it (defaults: the reference schedule unchanged).
     """
     period = max(max_iters // 10, 1)
@@ -187,6 +189,16 @@ def _valid(t: torch.Tensor, w: torch.Tensor, near: float = NEAR) -> torch.Tensor
     """Pairs a pixel composites at most: in front of the near plane (z = ``near``), finite, splat weight above
     WEIGHT_EPS."""
     return (t > near) & (t < math.inf) & (w > WEIGHT_EPS)
+
+
+def check_near(near: float) -> None:
+    """Refuse a near plane that is not at a finite z > 0 (an :class:`~lipmap.errors.InputError`, a ValueError).
+
+    The screen boxes project the corners of the rectangles clipped to z >= near and divide by that z: at z = 0 a
+    plane through the camera plane projects to infinity, and no pixel could be binned.
+    """
+    if not (0.0 < near < math.inf):
+        raise InputError(f"the near plane must lie at a finite z > 0, got {near}")
 
 
 def _check_inputs(center, quat, radii, cam_from_world, width, height):
@@ -341,6 +353,7 @@ def select_hits(
     where the transmittance falls below TRANSMITTANCE_EPS.
     """
     _check_inputs(center, quat, radii, cam_from_world, width, height)
+    check_near(near)
     intrinsics = tuple(float(v) for v in intrinsics)
     cam = _planes_in_camera(center, quat, radii, cam_from_world.to(device=center.device, dtype=center.dtype))
     return _select(cam, _plane_table(*cam), intrinsics, width, height, lam, max_hits, tile_size, near=near)
@@ -622,7 +635,7 @@ def rasterize_planes(
         max_hits: M, intersections composited per pixel (the Warp kernel takes up to 32).
         tile_size: tile edge in pixels for the binning (speed only; results do not depend on it).
         backend: ``"auto"``, ``"torch"`` or ``"warp"`` (see the module docstring); None: :data:`DEFAULT_BACKEND`.
-        near: the near plane's z-depth in metres: intersections nearer the camera are not rendered (default
+        near: the near plane's z-depth in metres, > 0: intersections nearer the camera are not rendered (default
             :data:`~lipmap.planes.primitives.NEAR`, 1 cm; the reference code's is 0.1 m).
 
     Returns:
@@ -634,8 +647,7 @@ def rasterize_planes(
     _check_inputs(center, quat, radii, cam_from_world, width, height)
     if max_hits < 1:
         raise InputError(f"max_hits must be at least 1, got {max_hits}")
-    if not (0.0 <= near < math.inf):
-        raise InputError(f"the near plane must lie at a finite z >= 0, got {near}")
+    check_near(near)
     intrinsics = tuple(float(v) for v in intrinsics)
     which = resolve_backend(backend, center.device, center.dtype, max_hits) if len(center) else "torch"
     if which == "warp" and cam_from_world.requires_grad:
