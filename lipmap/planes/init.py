@@ -1,6 +1,6 @@
 """Plane initialization: fuse the mapping views' depth into a mesh, decimate, one plane per face.
 
-Reference-code facts (DESIGN.md): TSDF fusion (~1 cm voxels), decimation to N faces (2000 by
+Reference-code facts (docs/design.md): TSDF fusion (~1 cm voxels), decimation to N faces (2000 by
 default), one plane per face with centre = face centroid, normal = mean vertex normal and all
 four radii = 0.3 x the mean centroid-to-vertex distance.
 

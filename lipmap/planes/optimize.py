@@ -4,7 +4,7 @@ One view per iteration (seeded order), Adam on centre, quaternion and radii, pla
 ``2 * depth L1 + 5 * (normal L1 + (1 - cos))`` weighted ``10 * max(exp(-i / max_iters), 0.1)``,
 re-centring after every step, and once per epoch (or every ``restructure_every`` iterations, if longer) pruning
 (smallest radius <= 1.25e-3 or seen by no view) and splitting (mean |grad| of an axis's radii >= threshold). Reference-code facts are in
-DESIGN.md; what is ours is said where it is done.
+docs/design.md; what is ours is said where it is done.
 
 Hook for the line loss: ``optimize_planes(..., extra_loss=f)`` adds ``f(view, planes, iteration,
 render, target)`` (a scalar tensor, already weighted) to the total, with that one fixed signature; see

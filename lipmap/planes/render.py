@@ -62,7 +62,7 @@ def lambda_schedule(iteration: int, max_iters: int, lam_min: float = 0.0, lam_ma
     """Sharpness of the splat fall-off: ``5 * min(20 * exp(iter / (max_iters // 10) - 1), 300)``.
 
     Starts at 5 * 20 / e = 36.8 (weight 1e-4 reached ~27 cm outside a rectangle) and saturates at
-    1500 (6.6 mm) from 37 % of the iterations on (reference-code schedule, see DESIGN.md).
+    1500 (6.6 mm) from 37 % of the iterations on (reference-code schedule, see docs/design.md).
     ``lam_min`` / ``lam_max`` clip it (defaults: the reference schedule unchanged).
     """
     period = max(max_iters // 10, 1)
