@@ -321,7 +321,7 @@ def _add_pose_args(p, registration: bool = True):
                    help="the published pseudo-GT lists <scene>_{train,test}.txt of --pose-source sfm|dslam: a clone of "
                         "github.com/tsattler/visloc_pseudo_gt_limitations, its pgt/ folder, or its pgt/SOURCE/7scenes/ "
                         "(default: ROOT/pgt when it holds SOURCE/7scenes/, else ROOT/<scene>/pgt/SOURCE_<scene>.txt; "
-                        "docs/data.md)")
+                        "docs/usage.md)")
     if registration:
         p.add_argument("--no-registration", action="store_true", help="use raw depth as if it were the colour camera's")
 
@@ -351,7 +351,7 @@ def _add_mapping_args(p, method_default: str):
                    help="lipmap: extract a plane edge where its projection lies within PX pixels and RAD radians of a "
                         "detected line (fast: 3,0.03; paper: 1,0.01). Wider gates give more plane edges and fewer "
                         "on-plane lines: at 10,0.1 the RedKitchen mini's edges reach F@5cm 0.65 and its full map drops "
-                        "(docs/mapping.md)")
+                        "(docs/design.md)")
     p.add_argument("--track-gate", default=None, type=_gate("2,0.01"), metavar="PX,RAD",
                    help="lipmap: a line's track takes a detection its projection lies within PX pixels and RAD radians "
                         "of (default: the paper's 2,0.01)")
@@ -360,12 +360,12 @@ def _add_mapping_args(p, method_default: str):
                         "projects within PX and RAD of it (default: every detection an edge tracks). With --track-gate "
                         "4,0.05, --extract-gate 4,0.04, --explain-gate 2,0.01 and --aggregate the RedKitchen mini's map reaches "
                         "F@5cm 0.821 / R@50mm 1,047 and 3 images per line, and localizes its held-out weak queries worse "
-                        "(docs/mapping.md)")
+                        "(docs/design.md)")
     p.add_argument("--aggregate", action="store_true",
                    help="lipmap: one line per physical line: lines sharing detections merged, each spanning its track's "
                         "detections, single-image lines along a tracked one absorbed (off in every preset: the RedKitchen "
                         "mini's edges reach R@50mm 495 and its full map 876, and the held-out split's weak queries "
-                        "localize worse; docs/mapping.md)")
+                        "localize worse; docs/design.md)")
     p.add_argument("--skip-bad-frames", action="store_true", help="skip unreadable mapping frames (default: stop with an error)")
     p.add_argument("--overwrite", action="store_true", help="remake the artifacts instead of reusing them")
 

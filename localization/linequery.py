@@ -37,7 +37,8 @@ class LineQueryConfig:
     region_radius: float = 3.0
     occlusion_tol: float = 0.05  # m, projection method's visibility test against the planes
     # map lines seen in fewer mapping images (by the track test) are not queried; 0: all, also those no image verifies
-    # (leaving those out gains where queries are far from the mapping views; docs/mapping.md, "The query's lines")
+    # (leaving those out gains where queries are far from the mapping views; docs/localization.md,
+    # `-verified-lines` variants)
     min_support: int = 1
     one_to_one: bool = True  # a map line matches at most one query line (its best), as a point matches one keypoint
     min_margin: float = 6.0  # projection: drop a query line whose runner-up map line scores within this of its best (0: off)

@@ -168,7 +168,7 @@ def test_aggregate_option_turns_the_aggregation_on():
 
 
 def test_track_and_explain_gates_set_the_map_that_meets_every_mapping_target(capsys):
-    """The map of docs/mapping.md that meets every mapping target of the RedKitchen mini, from the command line; gates checked as --extract-gate's."""
+    """The map of docs/design.md that meets every mapping target of the RedKitchen mini, from the command line; gates checked as --extract-gate's."""
     from localization.cli import _mapping_conf, build_parser
     from lipmap.mapping.pipeline import get_conf
 

@@ -174,7 +174,7 @@ def test_paper_adam_moves_each_centre_by_lr_times_the_sign_of_its_gradient():
 
 
 def test_fast_adam_keeps_its_moments():
-    # fast: torch's Adam, moments kept (docs/mapping.md): after a run of gradients of one sign, a sign change moves
+    # fast: torch's Adam, moments kept (docs/design.md): after a run of gradients of one sign, a sign change moves
     # the centre less than lr, not lr the other way
     conf = PlaneOptConfig.preset("fast-lines")
     opt, _ = _adam_steps(conf, 3)

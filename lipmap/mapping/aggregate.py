@@ -33,7 +33,7 @@ from .depth_lookup import depth_pixels, nearest_depth_residual
 @dataclass(frozen=True)
 class AggregateConfig:
     # off in every preset (--aggregate): the maps gain, and the held-out split's weak queries localize worse
-    # (docs/mapping.md)
+    # (docs/design.md)
     enabled: bool = False
     merge: bool = True
     merge_max_angle_deg: float = 2.0

@@ -33,7 +33,7 @@ from .refine import RefineConfig, refine_linemap
 @dataclass
 class MappingConfig:
     """Line mapping settings; named presets in :data:`confs` (figures behind each default:
-    ``benchmarks/results/`` and ``docs/tuning.md``)."""
+    ``docs/design.md``, "Why `fast` is what it is", and ``benchmarks/results/``)."""
 
     preset: str = "fast"
     lines: str = "lsd"  # lipmap.lines2d preset
@@ -62,11 +62,11 @@ class MappingConfig:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)  # the views a map is built from
     # every line refined against the mapping views that see it, then tracked again: a plane's edge fits its detections
     # only as well as the plane fits the depth, an on-plane line carries one view's depth
-    # (docs/mapping.md, "Every line refined")
+    # (docs/design.md, "Why fast is what it is")
     refine: RefineConfig = field(default_factory=lambda: RefineConfig(enabled=True, lines="all"))
     # lines that share detections merged, each spanning its track's detections (ours; lipmap/mapping/aggregate.py);
     # off: the mapping metrics gain and the weak queries of the held-out split lose
-    # (docs/mapping.md, "One line per physical line")
+    # (docs/design.md, "Why fast is what it is")
     aggregate: AggregateConfig = field(default_factory=AggregateConfig)
     seed: int = 0
 
@@ -76,8 +76,8 @@ confs = {
     "fast": MappingConfig(),
     # tests, notebooks and demos on small scenes: 8 epochs of the plain "fast" plane preset
     "quick": MappingConfig(preset="quick", planes="fast", refine=RefineConfig(enabled=False)),
-    # the paper and its reference code (docs/mapping.md, "Where paper follows the reference code"); where the paper's
-    # text is silent or differs, the reference: the line loss as coded (0.5 * D_euc + max D_ort, group loss off,
+    # the paper and its reference code (docs/design.md, "The paper, the reference code and `--preset paper`"); where
+    # the paper's text is silent or differs, the reference: the line loss as coded (0.5 * D_euc + max D_ort, group loss off,
     # D_euc over the endpoints inside the image), one sampled pixel per line and iteration, hard first hits,
     # extraction on the mean of the endpoint distances, every view, no assignment filter and no minimum line length
     "paper": MappingConfig(preset="paper", planes="paper", line_weight=0.1, pixels_per_line=1, endpoint_weight=0.5,

@@ -95,7 +95,7 @@ class PlaneOptConfig:
 
 
 def _fast() -> PlaneOptConfig:
-    # Tests and the demo on a CPU; each departure from the reference is why it is fast (docs/tuning.md).
+    # Tests and the demo on a CPU; each departure from the reference is why it is fast (docs/design.md).
     return PlaneOptConfig(
         name="fast",
         epochs=8,
@@ -111,7 +111,7 @@ def _fast() -> PlaneOptConfig:
 
 
 def _fast_lines() -> PlaneOptConfig:
-    # The joint line-plane optimization on a CPU (mapping preset "fast"); see docs/tuning.md.
+    # The joint line-plane optimization on a CPU (mapping preset "fast"); see docs/design.md.
     fast = _fast()
     return replace(
         fast,
@@ -125,19 +125,20 @@ def _fast_lines() -> PlaneOptConfig:
         restructure_every=50,  # the 50-view mini's epoch, where the threshold was chosen, for fewer views
         init=replace(fast.init, n_planes=6000),  # more edges to align with the detected lines
         # the last quarter at twice the resolution (7-Scenes: the camera's): edges settle on the pixels held-out
-        # queries see (SfM pGT, 5 matches: 32 % within 2 cm against 28; docs/mapping.md, "Training resolution"),
+        # queries see (SfM pGT, 5 matches: 32 % within 2 cm against 28; docs/design.md, "Why fast is what it is"),
         # ~80 s on 2 cores
         fine_iterations=900,
     )
 
 
 def _paper() -> PlaneOptConfig:
-    # The reference code (docs/mapping.md, "Where paper follows the reference code"): full resolution, 6,000 iterations
+    # The reference code (docs/design.md, "The paper, the reference code and `--preset paper`"): full resolution,
+    # 6,000 iterations
     # whatever the views, lr 1e-3 with its Adam (betas 0.9 / 0.99, eps 1e-15, centre and radii moments zeroed after
     # each step), 1 cm voxels, its depth and normal losses (unit normals in the world frame, over the rendered
     # pixels), its split criterion from the second round, and its renderer's 30 contributors per pixel, back-face
     # and near-centre culling, its near plane at 0.1 m. Plane loss 2 * depth + 5 * normal as the reference codes it
-    # (the paper's text writes the weights as lambda_d and lambda_n without values).
+    # (the paper writes depth 5, normal 1 in Sec. 3.3 and normal 5, depth 1 in appendix A; docs/design.md).
     return PlaneOptConfig(name="paper", epochs=0, iterations=6000, downscale=1, split_grad_reduce="max",
                           depth_loss_on_rendered=True, normal_loss_normalized=True, normal_loss_on_rendered=True,
                           normal_frame="world", adam_betas=(0.9, 0.99), adam_eps=1e-15, reset_moments_on_recenter=True,
