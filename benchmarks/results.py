@@ -150,9 +150,26 @@ def dirty() -> bool:
     return bool(_code_status("--porcelain"))
 
 
+def foreign_packages() -> list[str]:
+    """The project's packages already imported from outside this checkout (another checkout's editable install):
+    figures measured with them would be recorded under this checkout's commit."""
+    out = []
+    for name in ("lipmap", "localization"):
+        mod = sys.modules.get(name)
+        where = Path(getattr(mod, "__file__", None) or "").resolve().parent if mod else None
+        if where is not None and where != REPO / name:
+            out.append(f"{name} from {where}")
+    return out
+
+
 def require_clean() -> None:
-    """Stop a benchmark that would write into ``benchmarks/results/`` from a dirty tree, before it spends its time
-    (unless ``LIPMAP_BENCH_ALLOW_DIRTY=1``)."""
+    """Stop a benchmark that would write into ``benchmarks/results/`` from a dirty tree, or with the project's code
+    imported from another checkout, before it spends its time (unless ``LIPMAP_BENCH_ALLOW_DIRTY=1``)."""
+    foreign = foreign_packages() if RESULTS == _DEFAULT_RESULTS else []
+    if foreign:
+        raise SystemExit(f"benchmarks/results: {', '.join(foreign)}, not this checkout ({REPO}), so the figures would "
+                         f"not come from its commit. Install this checkout (pip install -e .) or run with "
+                         f"PYTHONPATH={REPO}.")
     if RESULTS == _DEFAULT_RESULTS and os.environ.get(ALLOW_DIRTY_ENV) != "1" and dirty():
         raise SystemExit(f"benchmarks/results: the tree has uncommitted changes, so these figures would reproduce from no "
                          f"commit. Commit first (or run from a clean worktree), or set {ALLOW_DIRTY_ENV}=1 to write "

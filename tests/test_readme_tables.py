@@ -134,3 +134,21 @@ def test_results_refuse_a_dirty_tree_unless_told(tmp_path, monkeypatch):
     monkeypatch.setenv(res.ALLOW_DIRTY_ENV, "1")
     path = res.write("dirty-ok", {"table": {"header": [], "rows": []}})
     assert json.loads(path.read_text())["provenance"]["dirty"] is True
+
+
+def test_results_refuse_code_imported_from_another_checkout(tmp_path, monkeypatch):
+    import sys
+    import types
+
+    import pytest
+
+    res = _readme_tables().results
+    monkeypatch.setattr(res, "dirty", lambda: False)
+    monkeypatch.setattr(res, "RESULTS", res._DEFAULT_RESULTS)
+    assert res.foreign_packages() == []  # the tests import this checkout's packages
+    other = types.ModuleType("lipmap")
+    other.__file__ = str(tmp_path / "other-checkout" / "lipmap" / "__init__.py")
+    monkeypatch.setitem(sys.modules, "lipmap", other)
+    with pytest.raises(SystemExit, match="not this checkout"):
+        res.write("never-written", {"table": {"header": [], "rows": []}})
+    assert not (res._DEFAULT_RESULTS / "never-written.json").exists()
