@@ -55,10 +55,103 @@ def test_moments_of_centre_and_radii_reset_after_recentring():
 
 def test_split_criterion_mean_or_max_of_the_two_radii():
     g = torch.tensor([[0.1, 0.5, 0.2, 0.2]])
-    for reduce, want in (("mean", [0.3, 0.2]), ("max", [0.5, 0.2])):
+    for reduce, want in (("mean", [0.3, 0.2]), ("max", [0.5, 0.2]), ("max_of_means", [0.5, 0.2])):
         s = _EpochStats.zeros(1, "cpu")
         s.add_step(torch.tensor(1.0), None, g, torch.tensor([True]), reduce)
         assert s.radii_grad()[0].tolist() == pytest.approx(want)
+
+
+def test_split_statistic_max_of_means_over_the_round():
+    """The reference (``get_split_mask_via_radii_grad`` on ``radii_grad_accum / radii_grad_denom``): each radius's
+    |grad| averaged over the steps that saw the plane, then the larger of the + and - sides. Two steps whose larger
+    side alternates: x+ |grad| 0.4 then 0, x- 0 then 0.4: max of means 0.2, mean of max 0.4 (under a 0.3 threshold
+    the reference does not split, the step-wise max does). A step that did not see the plane is not counted."""
+    steps = [torch.tensor([[0.4, 0.0, 0.1, 0.3]]), torch.tensor([[0.0, 0.4, 0.1, 0.3]]), torch.tensor([[9.0, 9.0, 9.0, 9.0]])]
+    got = {}
+    for reduce in ("max", "max_of_means", "mean"):
+        s = _EpochStats.zeros(1, "cpu")
+        for g, vis in zip(steps, (True, True, False)):
+            s.add_step(torch.tensor(1.0), None, g * vis, torch.tensor([vis]), reduce)
+        got[reduce] = s.radii_grad()[0].tolist()
+    assert got["max"] == pytest.approx([0.4, 0.3]) and got["max_of_means"] == pytest.approx([0.2, 0.3])
+    assert got["mean"] == pytest.approx([0.2, 0.2])
+    assert PlaneOptConfig.preset("paper").split_grad_reduce == "max_of_means"
+    assert PlaneOptConfig.preset("fast-lines").split_grad_reduce == "mean"
+
+
+def test_split_children_start_with_zero_moments():
+    """The reference appends a split's new planes to Adam with zeroed moments (``cat_tensors_to_optimizer``) and
+    prunes their parent; the planes that were not split keep theirs. ``fast`` copies the parent's moments."""
+    planes = Planes.from_normals([[0.0, 0, 2.0], [0.5, 0, 2.0]], [[0, 0, -1.0]] * 2, [0.2, 0.2])
+    params = [t.clone().requires_grad_(True) for t in planes.tensors()]
+    got = {}
+    for name in ("fast-lines", "paper"):
+        conf = replace(PlaneOptConfig.preset(name), split_after_rounds=0)
+        opt = _make_optimizer(params, conf)
+        _apply_step(opt, params, sum((p * torch.arange(1.0, p.numel() + 1).view_as(p)).sum() for p in params))
+        stats = _EpochStats.zeros(2, "cpu")
+        stats.add_step(torch.tensor(1.0), None, torch.tensor([[1.0] * 4, [0.0] * 4]), torch.tensor([True, True]),
+                       conf.split_grad_reduce)
+        new, opt_new, imap = _restructure(params, opt, stats, 10, Schedule.of(conf, 10), {}, n_round=1)
+        assert imap.n_split == 1 and len(new[0]) == 5 and imap.child.tolist() == [False] + [True] * 4
+        got[name] = [opt_new.state[p]["exp_avg"].abs().sum(-1) for p in new]
+    for m in got["fast-lines"]:
+        assert (m > 0).all()  # the children took plane 0's moments
+    for m in got["paper"]:
+        assert m[0] > 0 and (m[1:] == 0).all()  # plane 1 (not split) keeps its moments
+
+
+def test_paper_walks_the_views_in_sequence():
+    """The reference's ``data_order = sequential``: view i at iteration i (mod the views); ``fast`` shuffles."""
+    from lipmap.planes.train import optimize_planes
+
+    targets = [_target(np.full((80, 100), 2.0 + 0.1 * i)) for i in range(4)]
+    planes = Planes.from_normals([[0.0, 0, 2.0]], [[0, 0, -1.0]], [0.5])
+    seen = {}
+    for name in ("fast", "paper"):
+        order = []
+
+        def extra(view, pl, it, render, tgt):
+            order.append(next(i for i, t in enumerate(targets) if t is tgt))
+            return None
+
+        conf = replace(PlaneOptConfig.preset(name), epochs=2, iterations=0, progress=False, device="cpu", split=False,
+                       prune_unseen=False, prune_unseen_every=0)
+        optimize_planes(targets, planes, conf, extra_loss=extra)
+        seen[name] = order
+    assert seen["paper"] == [0, 1, 2, 3] * 2
+    assert sorted(seen["fast"][:4]) == [0, 1, 2, 3] and seen["fast"] != seen["paper"]
+
+
+def test_paper_prunes_invisible_planes_at_iteration_0_and_every_1000():
+    """The reference checks visibility (every view rendered) before its first step and after steps 1000, 2000, ...;
+    its prune/split rounds only prune small planes. Ours by default prunes at each round the planes that round's
+    views did not render. A plane behind every camera goes at iteration 0 under ``paper``."""
+    from lipmap.planes.train import optimize_planes
+
+    targets = [_target(np.full((80, 100), 2.0)) for _ in range(3)]
+    planes = Planes.from_normals([[0.0, 0, 2.0], [0.0, 0, -2.0]], [[0, 0, -1.0], [0, 0, 1.0]], [0.5, 0.5])
+    calls = []
+    conf = replace(PlaneOptConfig.preset("paper"), iterations=7, progress=False, device="cpu", split=False,
+                   prune_unseen_every=2, cull_back_faces=False, min_center_depth=0.0, max_hits=5)
+    _, hist = optimize_planes(targets, planes, conf, on_restructure=lambda imap: calls.append(imap.n_old))
+    # the clean start, the check at 0 (2 -> 1), rounds after 3, 6 and 7 (the last) steps; checks after the steps
+    # of the reference's iterations 2, 4 and 6, with nothing left to prune
+    assert [it for it, _ in hist["invisible_pruned"]] == [0, 2, 4, 6] and hist["invisible_pruned"][0][1] == 1
+    assert calls == [2, 2, 1, 1, 1] and hist["planes"] == [1, 1, 1] and hist["unseen"] == [0, 0, 0]
+
+
+def test_paper_counts_pixels_without_a_target_normal():
+    """The reference's normal loss masks on the render alone (``valid_ray_mask``): a rendered pixel whose target
+    normal is zero costs |n|_1 + 1 (here 1 + 1) and is counted; ours leaves it out."""
+    normal = torch.tensor([[[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]]], requires_grad=True)
+    r = RenderOutput(torch.zeros(1, 2, requires_grad=True), normal, torch.ones(1, 2), torch.zeros(1, 2, 1, dtype=torch.long))
+    tgt = ViewTarget(None, CAM, torch.eye(4), torch.zeros(1, 2), torch.tensor([[[0.0, 0, -1], [0, 0, 0]]]),
+                     torch.zeros(1, 2, dtype=torch.bool), torch.tensor([[True, False]]))
+    paper = PlaneOptConfig.preset("paper")
+    assert paper.normal_loss_on_invalid_targets
+    assert plane_loss(r, tgt, paper)[1]["normal"] == pytest.approx(2.0 / 2)
+    assert plane_loss(r, tgt, replace(paper, normal_loss_on_invalid_targets=False))[1]["normal"] == pytest.approx(0.0)
 
 
 def test_extraction_distance_max_or_mean_of_the_endpoint_distances():
@@ -287,7 +380,12 @@ def test_paper_splits_after_one_pass_over_the_views():
 def test_paper_preset_follows_the_reference_code():
     conf = get_conf("paper")
     planes = PlaneOptConfig.preset(conf.planes)
-    assert (planes.split_grad_reduce, planes.depth_loss_on_rendered, planes.reset_moments_on_recenter) == ("max", True, True)
+    assert (planes.split_grad_reduce, planes.depth_loss_on_rendered, planes.reset_moments_on_recenter) == ("max_of_means", True, True)
+    assert (planes.zero_moments_of_split, planes.view_order, planes.prune_unseen_every) == (True, "sequential", 1000)
+    assert planes.normal_loss_on_invalid_targets and planes.max_depth == 10.0
+    # the reference's fusion: 1 cm voxels, 2 cm truncation, every view, depth to 10 m, 10,000 planes
+    i = planes.init
+    assert (i.voxel_size, i.voxel_size * i.trunc_voxels, i.max_frames, i.max_depth, i.n_planes) == (0.01, 0.02, 0, 10.0, 10000)
     assert (planes.adam_betas, planes.adam_eps) == ((0.9, 0.99), 1e-15)
     assert (planes.normal_loss_normalized, planes.normal_loss_on_rendered, planes.normal_frame) == (True, True, "world")
     # the reference renderer: 30 contributors per pixel, back faces and planes whose centre is nearer than 0.2 m culled

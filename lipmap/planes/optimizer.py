@@ -16,8 +16,10 @@ def _live(planes: Planes) -> list:
     return [t.clone(memory_format=torch.contiguous_format).requires_grad_(True) for t in planes.tensors()]
 
 
-def _make_optimizer(params: list, conf: PlaneOptConfig, old: Optional[torch.optim.Adam] = None, parent=None):
-    """Adam over [center, quat, radii]; with ``old`` and ``parent``, moments follow the index map."""
+def _make_optimizer(params: list, conf: PlaneOptConfig, old: Optional[torch.optim.Adam] = None, parent=None,
+                    fresh: Optional[torch.Tensor] = None):
+    """Adam over [center, quat, radii]; with ``old`` and ``parent``, moments follow the index map, except for the
+    planes ``fresh`` (bool, new indices), whose moments start at zero."""
     opt = torch.optim.Adam(
         [
             {"params": [params[0]], "lr": conf.lr_center},
@@ -39,6 +41,9 @@ def _make_optimizer(params: list, conf: PlaneOptConfig, old: Optional[torch.opti
                     "exp_avg": st["exp_avg"][parent].clone(),
                     "exp_avg_sq": st["exp_avg_sq"][parent].clone(),
                 }
+                if fresh is not None:
+                    for key in ("exp_avg", "exp_avg_sq"):
+                        opt.state[p_new][key][fresh] = 0
     return opt
 
 

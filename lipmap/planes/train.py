@@ -89,6 +89,8 @@ class _EpochStats:
     used: object = 0  # steps taken
     skipped: int = 0  # views without a loss
     dropped: object = 0  # steps the device skipped (a non-finite loss, or nothing to pull on)
+    # (K, 4) sum of |grad| of each radius, for reduce "max_of_means" (the larger side is taken once, of the means)
+    grad_sides: Optional[torch.Tensor] = None
 
     @classmethod
     def zeros(cls, K: int, device) -> "_EpochStats":
@@ -102,12 +104,16 @@ class _EpochStats:
         w = None if taken is None else taken.to(self.grad_sum.dtype)
         if w is not None:
             g = g * w
-        if reduce == "max":
+        if reduce == "max_of_means":
+            self.grad_sides = g if self.grad_sides is None else self.grad_sides + g
+        elif reduce == "max":
             self.grad_sum[:, 0] += torch.maximum(g[:, 0], g[:, 1])
             self.grad_sum[:, 1] += torch.maximum(g[:, 2], g[:, 3])
-        else:
+        elif reduce == "mean":
             self.grad_sum[:, 0] += 0.5 * (g[:, 0] + g[:, 1])
             self.grad_sum[:, 1] += 0.5 * (g[:, 2] + g[:, 3])
+        else:
+            raise InputError(f"split_grad_reduce must be 'mean', 'max' or 'max_of_means', got {reduce!r}")
         self.grad_count += vis.float() if w is None else vis.float() * w
 
         def value(x):
@@ -130,7 +136,16 @@ class _EpochStats:
 
     def radii_grad(self) -> torch.Tensor:
         """:math:`(K, 2)` mean |grad| per axis over the views that saw each plane."""
-        return self.grad_sum / self.grad_count.clamp(min=1)[:, None]
+        s = self.grad_sum
+        if self.grad_sides is not None:  # the radii are (x+, x-, y+, y-)
+            g = self.grad_sides
+            s = torch.stack([torch.maximum(g[:, 0], g[:, 1]), torch.maximum(g[:, 2], g[:, 3])], 1)
+        return s / self.grad_count.clamp(min=1)[:, None]
+
+    def select(self, idx: torch.Tensor) -> "_EpochStats":
+        """The same round's sums for the planes ``idx`` (a pruned set's parents), the scalars kept."""
+        return replace(self, seen=self.seen[idx], grad_sum=self.grad_sum[idx], grad_count=self.grad_count[idx],
+                       grad_sides=None if self.grad_sides is None else self.grad_sides[idx])
 
 
 def _rendered_subset(params: list, cam_from_world: torch.Tensor, conf: PlaneOptConfig) -> Optional[torch.Tensor]:
@@ -214,6 +229,26 @@ def _restructure(params: list, opt, stats: _EpochStats, it: int, sched: Schedule
         logger.warning("pruning would remove every plane; keeping the current set")
         new, imap = prune_and_split(current, min_radius=0.0, split_threshold=None)
     params_new = _live(new)
+    fresh = imap.child if conf.zero_moments_of_split else None
+    return params_new, _make_optimizer(params_new, conf, old=opt, parent=imap.parent, fresh=fresh), imap
+
+
+def _prune_invisible(params: list, opt, targets, it: int, sched: Schedule, hist: dict):
+    """The reference's visibility check: render every view with the current planes and prune those none renders.
+    Returns (params, optimizer, index map); the index map is None when nothing was pruned."""
+    conf = sched.conf
+    seen = torch.zeros(len(params[0]), dtype=torch.bool, device=params[0].device)
+    with torch.no_grad():
+        for i in range(len(targets)):
+            seen |= render_target(params, targets[i], sched.lam(it), conf).visible_planes(len(params[0]))
+    n_unseen = int((~seen).sum())
+    hist.setdefault("invisible_pruned", []).append([it, n_unseen])
+    if n_unseen == 0 or n_unseen == len(seen):
+        if n_unseen:
+            logger.warning("no view renders any plane; keeping the current set")
+        return params, opt, None
+    new, imap = prune_and_split(Planes(*(p.detach() for p in params)), seen=seen, min_radius=0.0, split_threshold=None)
+    params_new = _live(new)
     return params_new, _make_optimizer(params_new, conf, old=opt, parent=imap.parent), imap
 
 
@@ -289,8 +324,24 @@ def optimize_planes(
     visited = np.zeros(len(targets), dtype=bool)  # the views this round has trained on
     t0 = time.time()
     stats = _EpochStats.zeros(len(params[0]), dev)
+    if conf.view_order not in ("shuffle", "sequential"):
+        raise InputError(f"view_order must be 'shuffle' or 'sequential', got {conf.view_order!r}")
+    check_every = conf.prune_unseen_every
+
+    def prune_invisible(at):
+        nonlocal params, opt, stats
+        params, opt, imap = _prune_invisible(params, opt, fine if fine is not None and it >= fine_from else targets, at,
+                                             sched, hist)
+        if imap is not None:
+            stats = stats.select(imap.parent)
+            if on_restructure:
+                on_restructure(imap)
+
+    if check_every > 0:
+        prune_invisible(0)
     for epoch in range(sched.n_epochs):
-        for vi in rng.permutation(len(targets))[: sched.max_iters - it]:
+        order = rng.permutation(len(targets)) if conf.view_order == "shuffle" else np.arange(len(targets))
+        for vi in order[: sched.max_iters - it]:
             if it == fine_from and isinstance(targets, TargetStore):
                 targets.release()  # the coarse targets are not used again: up to cache_views of them held
             _train_view(params, opt, (fine if it >= fine_from else targets)[vi], it, sched, extra_loss, stats)
@@ -298,12 +349,14 @@ def optimize_planes(
             visited[vi] = True
             if bar is not None:
                 bar.update(1)
+            if check_every > 0 and it - 1 > 0 and (it - 1) % check_every == 0:
+                prune_invisible(it - 1)  # the reference checks after the step of its iteration it - 1
             if it % every and it < sched.max_iters:
                 continue
             # "seen by no view" only where the round trained on every view (not so in a last round cut short by
             # the budget, or a round that is not a whole number of epochs and straddles two)
-            params, opt, imap = _restructure(params, opt, stats, it, sched, hist, stats.seen if visited.all() else None,
-                                             n_round)
+            seen = stats.seen if visited.all() and check_every <= 0 else None
+            params, opt, imap = _restructure(params, opt, stats, it, sched, hist, seen, n_round)
             visited[:] = False
             if on_restructure:
                 on_restructure(imap)
