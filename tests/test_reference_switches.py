@@ -399,3 +399,21 @@ def test_paper_preset_follows_the_reference_code():
     assert (conf.line_weight, conf.endpoint_weight, conf.robust_scale, conf.on_plane_lines) == (0.1, 0.5, 0.0, False)
     assert conf.line_depth_gate == 0 and get_conf("fast").line_depth_gate > 0  # the gate is ours, not the reference's
     assert (conf.extract.max_dist, conf.extract.max_angle) == (1.0, 0.01)
+
+
+def test_paper_gives_each_pixel_to_one_line():
+    """The reference's attraction field labels each pixel with one line (``compute_point_line_attraction``): where
+    two lines' 1-pixel regions overlap, the pixel goes to the nearer. Lines at y = 10.2 and 11.0 (x 5..20): row 10
+    (centres at y 10.5) lies 0.3 px from the first and 0.5 px from the second."""
+    from lipmap.mapping.assign import line_regions
+
+    lines = np.array([[5.0, 10.2, 20.0, 10.2], [5.0, 11.0, 20.0, 11.0]])
+    rows = {}
+    for exclusive in (False, True):
+        pix, li = line_regions(lines, 40, 30, exclusive=exclusive)
+        rows[exclusive] = [sorted(set(pix[li == k, 1].tolist())) for k in (0, 1)]
+        assert all((li == k).sum() == 15 * len(r) for k, r in enumerate(rows[exclusive]))
+    assert rows == {False: [[9, 10], [10, 11]], True: [[9, 10], [11]]}
+    conf = get_conf("paper")
+    assert conf.one_line_per_pixel and conf.extract.exclusive_pixels and line_supervision({}, conf).exclusive_pixels
+    assert not get_conf("fast").one_line_per_pixel and not get_conf("fast").extract.exclusive_pixels

@@ -36,6 +36,9 @@ class ExtractConfig:
     track_max_dist: float = 2.0
     track_min_overlap: float = 0.2
     occlusion_tol: float = 0.05  # relative depth tolerance of the visibility test
+    # a pixel in several lines' regions votes for the nearest line only (reference: its attraction field labels each
+    # pixel with one line); off: for each
+    exclusive_pixels: bool = False
     min_views: int = 1  # drop merged lines seen in fewer mapping views
     min_length: float = 0.02  # m
     # Drop a line whose median |line depth - sensor depth| over its tracked views exceeds this (m);
@@ -62,7 +65,8 @@ def extract_observations(corners, views, lines_by_view: dict, conf: ExtractConfi
         lines = np.asarray(lines_by_view.get(v.name, np.zeros((0, 4))), dtype=float)
         if len(lines) == 0:
             continue
-        a = assign_lines(caster, corners, lines, v.cam_from_world, v.camera, dist_reduce=conf.dist_reduce)
+        a = assign_lines(caster, corners, lines, v.cam_from_world, v.camera, dist_reduce=conf.dist_reduce,
+                         exclusive=conf.exclusive_pixels)
         ok = (a["angle"] <= conf.max_angle) & (a["dist"] <= conf.max_dist)
         if ok.any():
             rows.append(np.stack([np.full(ok.sum(), vi), a["line"][ok], a["plane"][ok], a["edge"][ok]], 1))

@@ -48,6 +48,9 @@ class MappingConfig:
     # each region pixel's plane is the first rectangle its ray meets (paper, reference); off: the render's nearest
     # splat, whose fall-off reaches past the rectangle's edge onto the surface behind
     hard_first_hit: bool = True
+    # a pixel in several lines' 1-pixel regions supervises the nearest line only (reference: its attraction field gives
+    # each pixel one line); off: each line that claims it
+    one_line_per_pixel: bool = False
     # m: the line term pulls a plane only where it lies this close to the sensor depth (0: the paper); without it
     # the term holds planes floating in front of the surface, whose edges fit lines in a few views
     line_depth_gate: float = 0.1
@@ -82,8 +85,8 @@ confs = {
     # extraction on the mean of the endpoint distances, every view, no assignment filter and no minimum line length
     "paper": MappingConfig(preset="paper", planes="paper", line_weight=0.1, pixels_per_line=1, endpoint_weight=0.5,
                            robust_scale=0.0, max_assign_frac=0.0, euc_inside_only=True, hard_first_hit=True,
-                           on_plane_lines=False, line_depth_gate=0.0,
-                           extract=ExtractConfig(dist_reduce="mean", min_length=0.0), refine=RefineConfig(enabled=False),
+                           on_plane_lines=False, line_depth_gate=0.0, one_line_per_pixel=True,
+                           extract=ExtractConfig(dist_reduce="mean", min_length=0.0, exclusive_pixels=True), refine=RefineConfig(enabled=False),
                            keyframes=KeyframeConfig(min_translation=0.0, min_rotation_deg=0.0, max_frame_gap=0)),
 }
 
