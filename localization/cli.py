@@ -251,7 +251,19 @@ def cmd_map_eval(args):
     from lipmap.linemap import LineMap
 
     path = Path(args.linemap)
+    if args.unmerged:
+        from lipmap.mapping.pipeline import UNMERGED
+
+        if path.is_dir() or not path.with_name(UNMERGED).exists():
+            raise InputError(f"--unmerged: no {UNMERGED} beside {path} (written by presets with write_unmerged, "
+                             "e.g. paper)", path)
+        path = path.with_name(UNMERGED)
     lm = LineMap.from_limap(path) if path.is_dir() else LineMap.load(path)
+    which = lm.metadata.get("map")
+    if which is None:  # maps written before the key, and other methods' maps
+        merge = lm.metadata.get("config", {}).get("extract", {}).get("merge") if lm.metadata.get("method") == "lipmap" else None
+        which = {None: "as written", "none": "unmerged"}.get(merge, "merged")
+    print(f"map: {path} ({which}, {len(lm)} lines)")
     if args.min_support > 0:
         n_all = len(lm)
         lm = lm.subset(lm.supports[:, 0] >= args.min_support)
@@ -270,6 +282,7 @@ def cmd_map_eval(args):
         overrides["m1_thresholds"] = args.thresholds
     res = evaluate_linemap(lm, gt, **overrides)
     res["min_support"] = args.min_support
+    res["map"], res["linemap"] = which, str(path)
     print(format_metrics(res))
     lines_h5 = path.with_name("lines2d.h5")
     if args.gt is None and path.is_file() and lines_h5.exists():
@@ -278,7 +291,7 @@ def cmd_map_eval(args):
               "(within 2 px and 1 deg of a detection; lipmap.image_support)")
     from lipmap.viz import plot_pr_curve
 
-    png = Path(args.linemap).with_name(Path(args.linemap).stem + "_pr.png")
+    png = path.with_name(path.stem + "_pr.png")
     plot_pr_curve(lm, gt, png)
     print(f"precision/recall plot: {png}")
     if args.json:
@@ -500,6 +513,10 @@ def _add_map_parser(sub):
 def _add_map_eval_parser(sub):
     p = sub.add_parser("map-eval", help="mapping metrics M1 / M2 of a line map against a mesh or point cloud")
     p.add_argument("--linemap", type=Path, required=True, help="linemap.h5, or a LIMAP folder holding finaltracks/")
+    p.add_argument("--unmerged", action="store_true",
+                   help="evaluate the unmerged map beside --linemap (linemap_unmerged.h5: one line per accepted plane "
+                        "edge, written by the paper preset as the reference code does) instead of the merged one; "
+                        "the output names the map it scores")
     p.add_argument("--gt", type=Path, default=None, help="GT mesh or point cloud (PLY)")
     p.add_argument("--thresholds", default=None, type=number_list(0.0, True, None, "metres > 0 separated by commas, e.g. 0.02,0.05"),
                    help="M1 thresholds in metres, comma separated (default 0.05)")

@@ -1,5 +1,7 @@
 """The switches by which ``--preset paper`` follows the reference code (and ``fast`` departs from it),
 each on a known answer."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -417,3 +419,101 @@ def test_paper_gives_each_pixel_to_one_line():
     conf = get_conf("paper")
     assert conf.one_line_per_pixel and conf.extract.exclusive_pixels and line_supervision({}, conf).exclusive_pixels
     assert not get_conf("fast").one_line_per_pixel and not get_conf("fast").extract.exclusive_pixels
+
+
+def _edge_corners(segments):
+    """Corners (K, 4, 3) whose first edge (v1 -> v2) is each segment (2, 3); the rest of each rectangle 1 m above."""
+    s = np.asarray(segments, dtype=float)
+    up = np.array([0, 0, 1.0])
+    return np.stack([s[:, 0], s[:, 1], s[:, 1] + up, s[:, 0] + up], 1)
+
+
+def _obs(rows):
+    r = np.array(rows, dtype=np.int64)
+    return {"view": r[:, 0], "line": r[:, 1], "plane": r[:, 2], "edge": np.zeros(len(r), dtype=np.int64),
+            "n_pixels": np.ones(len(r), dtype=np.int64)}
+
+
+def test_reference_global_merge_never_joins_groups():
+    """Four collinear edges A..D (x 0-1, 1-2, 2-3, 3-4): view 0's first detection sees A, B, its second C, D; view
+    1's detection sees B, C. The reference gives A, B one group and C, D another; the cluster {B, C} has no new
+    edge, so nothing changes: two lines. Connected components join the groups through it: one line."""
+    from lipmap.mapping.extract import ExtractConfig, merge_edges
+
+    x = np.arange(5.0)
+    corners = _edge_corners([[[x[i], 0, 2], [x[i + 1], 0, 2]] for i in range(4)])
+    obs = _obs([(0, 0, 0), (0, 0, 1), (0, 1, 2), (0, 1, 3), (1, 0, 1), (1, 0, 2)])
+    lines = {}
+    for rule in ("components", "reference"):
+        lines[rule], obs_line, edge_line = merge_edges(corners, obs, ExtractConfig(min_length=0.0, global_rule=rule))
+    assert len(lines["components"]) == 1 and len(lines["reference"]) == 2
+    spans = sorted(sorted(l[:, 0].round(6).tolist()) for l in lines["reference"])
+    assert spans == [[0.0, 2.0], [2.0, 4.0]]
+    assert edge_line[:, 0].tolist() == [0, 0, 1, 1]
+    assert get_conf("paper").extract.global_rule == "reference" and get_conf("fast").extract.global_rule == "components"
+
+
+def test_reference_global_merge_distance_is_one_sided():
+    """A 2 cm edge a at the origin along x and a 2 m edge b through it at 0.1 rad: a's points lie within 0.6 mm of
+    b's line, b's points 5.5 cm (mean) from a's. The reference's DBSCAN (eps 1 cm) on the one-sided matrix puts b in
+    a's neighbourhood: one line; the symmetrised distance (2.8 cm) keeps them apart."""
+    from lipmap.mapping.extract import ExtractConfig, _edge_distance_matrix, merge_edges
+
+    t = 0.1
+    segs = [[[-0.01, 0, 2], [0.01, 0, 2]], [[-np.cos(t), -np.sin(t), 2], [np.cos(t), np.sin(t), 2]]]
+    corners = _edge_corners(segs)
+    D = _edge_distance_matrix(np.asarray(segs), symmetric=False)
+    assert D[0, 1] < 1e-3 and D[1, 0] == pytest.approx(np.mean(np.abs(np.linspace(-1, 1, 10))) * np.sin(t), rel=1e-6)
+    obs = _obs([(0, 0, 0), (0, 0, 1)])
+    n = {rule: len(merge_edges(corners, obs, ExtractConfig(min_length=0.0, global_rule=rule))[0])
+         for rule in ("components", "reference")}
+    assert n == {"components": 2, "reference": 1}
+
+
+def test_paper_writes_the_merged_and_the_unmerged_map(tmp_path):
+    """``paper`` writes linemap.h5 (the reference's global merge) and linemap_unmerged.h5 (one line per accepted
+    plane edge), each saying which it is; a second call reuses both. A short run of the preset (its switches, fewer
+    iterations, coarser fusion) on a tiny synthetic room."""
+    from lipmap.datasets import load_scene
+    from lipmap.datasets.synthetic import SynthConfig, generate_scene
+    from lipmap.linemap import LineMap
+    from lipmap.mapping.pipeline import UNMERGED, map_scene
+
+    generate_scene(tmp_path / "data", seed=1, preset=SynthConfig("tiny", 160, 120, 131.25, 131.25, 80.0, 60.0,
+                                                                   n_mapping=6, n_query=1, texels_per_m=100.0))
+    scene = load_scene("synthetic", tmp_path / "data", "room-s1")
+    conf = {"preset": "paper", "planes": {"preset": "paper", "iterations": 24, "prune_unseen_every": 12,
+                                          "init": {"voxel_size": 0.05, "n_planes": 400}}}
+    path = map_scene(scene, tmp_path / "m", conf)
+    merged, unmerged = LineMap.load(path), LineMap.load(path.with_name(UNMERGED))
+    assert (merged.metadata["map"], unmerged.metadata["map"], merged.metadata["unmerged_file"]) == ("merged", "unmerged", UNMERGED)
+    assert 0 < len(merged) <= len(unmerged)
+    assert unmerged.metadata["config"]["extract"]["merge"] == "none"
+    mtime = path.stat().st_mtime_ns
+    assert map_scene(scene, tmp_path / "m", conf) == path and path.stat().st_mtime_ns == mtime
+
+
+def test_map_eval_says_which_map_it_scores(tmp_path):
+    """``lipmap-loc map-eval`` names the map it scores; ``--unmerged`` scores linemap_unmerged.h5 beside --linemap,
+    and refuses where there is none."""
+    import json
+
+    import trimesh
+
+    from localization.cli import main
+    from lipmap.linemap import LineMap
+    from lipmap.mapping.pipeline import UNMERGED
+
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    box.export(tmp_path / "box.ply")
+    seg = np.array([[[-0.5, -0.5, 0.5], [0.5, -0.5, 0.5]], [[-0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]])
+    LineMap(seg[:1], [[]], metadata={"map": "merged", "method": "lipmap"}).save(tmp_path / "linemap.h5")
+    LineMap(seg, [[], []], metadata={"map": "unmerged", "method": "lipmap"}).save(tmp_path / UNMERGED)
+    for flag, which, name in (([], "merged", "linemap.h5"), (["--unmerged"], "unmerged", UNMERGED)):
+        out = tmp_path / f"eval{len(flag)}.json"
+        assert main(["map-eval", "--linemap", str(tmp_path / "linemap.h5"), *flag, "--gt", str(tmp_path / "box.ply"),
+                     "--json", str(out)]) == 0
+        res = json.loads(out.read_text())
+        assert (res["map"], Path(res["linemap"]).name, res["n_lines"]) == (which, name, len(flag) + 1)
+    (tmp_path / UNMERGED).unlink()
+    assert main(["map-eval", "--linemap", str(tmp_path / "linemap.h5"), "--unmerged", "--gt", str(tmp_path / "box.ply")]) == 2
