@@ -517,3 +517,34 @@ def test_map_eval_says_which_map_it_scores(tmp_path):
         assert (res["map"], Path(res["linemap"]).name, res["n_lines"]) == (which, name, len(flag) + 1)
     (tmp_path / UNMERGED).unlink()
     assert main(["map-eval", "--linemap", str(tmp_path / "linemap.h5"), "--unmerged", "--gt", str(tmp_path / "box.ply")]) == 2
+
+
+def test_paper_rotation_is_two_quaternions_never_renormalised():
+    """The reference's rotation: a normal quaternion (w, x, y) and an in-plane one (w, z), q = q_n * q_z, each
+    normalised where used and never in place. Its first Adam step moves each of the five numbers by lr x the sign of
+    its gradient, and they stay where the step put them; ``fast``'s one quaternion is renormalised after the step."""
+    from lipmap.planes.primitives import quat_to_rotmat
+    from lipmap.planes.rotation import composed, split
+
+    q = torch.nn.functional.normalize(torch.tensor(np.random.default_rng(0).normal(size=(50, 4))), dim=-1)
+    assert torch.allclose(quat_to_rotmat(composed(split(q))), quat_to_rotmat(q), atol=1e-12)
+    # q_n = (cos 30, sin 30, 0): the normal turned 60 deg about x; q_z = (cos 45, sin 45): the x axis turned 90 deg
+    rot = torch.tensor([[np.cos(np.pi / 6), np.sin(np.pi / 6), 0.0, np.cos(np.pi / 4), np.sin(np.pi / 4)]])
+    R = quat_to_rotmat(composed(rot))[0]
+    assert torch.allclose(R[:, 2], torch.tensor([0.0, -np.sin(np.pi / 3), np.cos(np.pi / 3)]), atol=1e-6)
+    assert torch.allclose(R[:, 0], torch.tensor([0.0, np.cos(np.pi / 3), np.sin(np.pi / 3)]), atol=1e-6)
+
+    conf = PlaneOptConfig.preset("paper")
+    assert conf.rotation == "normal-inplane" and PlaneOptConfig.preset("fast").rotation == "quaternion"
+    params = [torch.zeros(1, 3, requires_grad=True), torch.tensor([[1.0, 0, 0, 1, 0]], requires_grad=True),
+              torch.full((1, 4), 0.1, requires_grad=True)]
+    opt = _make_optimizer(params, conf)
+    g = torch.tensor([[1.0, -1.0, 2.0, -3.0, 4.0]])
+    _apply_step(opt, params, (params[1] * g).sum() + 0 * params[0].sum() + 0 * params[2].sum(), True)
+    lr = conf.lr_quat
+    assert params[1].detach()[0].tolist() == pytest.approx([1 - lr, lr, -lr, 1 + lr, -lr], rel=1e-6)
+    fast = PlaneOptConfig.preset("fast")
+    p4 = [torch.zeros(1, 3, requires_grad=True), torch.tensor([[1.0, 0, 0, 0]], requires_grad=True),
+          torch.full((1, 4), 0.1, requires_grad=True)]
+    _apply_step(_make_optimizer(p4, fast), p4, (p4[1] * g[:, :4]).sum() + 0 * p4[0].sum() + 0 * p4[2].sum())
+    assert float(p4[1].detach().norm()) == pytest.approx(1.0, abs=1e-6)

@@ -74,6 +74,9 @@ class PlaneOptConfig:
     # pixels alone, and there such a pixel costs 2); off: they are left out
     normal_loss_on_invalid_targets: bool = False
     normal_frame: str = "camera"  # "world" (reference): the L1 part of the normal loss is not rotation-invariant
+    # "quaternion": one (w, x, y, z) per plane, renormalised after every step; "normal-inplane" (reference code): a
+    # normal quaternion (w, x, y) and an in-plane one (w, z), normalised only where used (lipmap/planes/rotation.py)
+    rotation: str = "quaternion"
     adam_betas: tuple = (0.9, 0.999)  # torch's default; reference (0.9, 0.99)
     adam_eps: float = 1e-8  # torch's default; reference 1e-15
     # zero Adam's moments of centre and radii after every step, keeping the step count: the reference replaces both
@@ -164,7 +167,7 @@ def _paper() -> PlaneOptConfig:
                           split_after_rounds=1, cull_back_faces=True, min_center_depth=0.2, near=0.1, max_hits=30,
                           split_grad_reduce="max_of_means", zero_moments_of_split=True,
                           normal_loss_on_invalid_targets=True, view_order="sequential", prune_unseen_every=1000,
-                          max_depth=10.0, init=_paper_init())
+                          rotation="normal-inplane", max_depth=10.0, init=_paper_init())
 
 
 def _paper_init() -> PlaneInitConfig:

@@ -83,7 +83,13 @@ def _apply_step(opt: torch.optim.Adam, params: list, total: torch.Tensor, reset_
     elif bool(taken):
         opt.step()
     with torch.no_grad():
-        if not _recenter_fused(params):
+        if params[1].shape[-1] != 4:  # the reference's two quaternions: re-centred, and never renormalised
+            from .rotation import composed
+
+            rec = Planes(params[0], composed(params[1]), params[2]).recentered()
+            params[0].copy_(rec.center)
+            params[2].copy_(rec.radii)
+        elif not _recenter_fused(params):
             rec = Planes(params[0], params[1], params[2]).recentered()
             params[0].copy_(rec.center)
             params[2].copy_(rec.radii)

@@ -31,6 +31,7 @@ from .io import export_planes_ply, save_planes
 from .losses import _pulls, _total_loss, plane_loss
 from .optimizer import _apply_step, _live, _make_optimizer
 from .primitives import Planes, quat_to_rotmat
+from .rotation import WIDTH, composed, split
 from .render import RenderOutput, lambda_schedule, rasterize_planes
 from .structure import prune_and_split
 from .targets import TargetStore, ViewTarget
@@ -159,7 +160,7 @@ def _rendered_subset(params: list, cam_from_world: torch.Tensor, conf: PlaneOptC
         c = params[0] @ R.T + t
         keep = c[:, 2] >= conf.min_center_depth
         if conf.cull_back_faces:
-            n = quat_to_rotmat(params[1])[..., 2] @ R.T
+            n = quat_to_rotmat(composed(params[1]))[..., 2] @ R.T
             keep &= (n * c).sum(-1) < 0  # the normal points back towards the camera centre
         return keep.nonzero().squeeze(1)
 
@@ -168,6 +169,7 @@ def render_target(params: list, tgt: ViewTarget, lam: float, conf: PlaneOptConfi
     """The differentiable render of the planes ``params`` = [center, quat, radii] in ``tgt``'s training camera, with
     the culling of ``conf``; ``hits`` index ``params`` (culled planes are never hit)."""
     idx = _rendered_subset(params, tgt.cam_from_world, conf)
+    params = [params[0], composed(params[1]), params[2]]
     p = params if idx is None else [t.index_select(0, idx) for t in params]
     out = rasterize_planes(p[0], p[1], p[2], tgt.cam_from_world, tgt.camera.params, tgt.camera.width,
                            tgt.camera.height, lam, conf.max_hits, conf.tile_size, near=conf.near)
@@ -189,7 +191,7 @@ def _train_view(params, opt, tgt: ViewTarget, it: int, sched: Schedule, extra_lo
     sched.set_lr(opt, it)
     out = render_target(params, tgt, sched.lam(it), conf)
     pl = plane_loss(out, tgt, conf)
-    extra = None if extra_loss is None else extra_loss(tgt.view, Planes(params[0], params[1], params[2]), it, out, tgt)
+    extra = None if extra_loss is None else extra_loss(tgt.view, _planes(params), it, out, tgt)
     total = _total_loss(pl, extra, conf.plane_weight * sched.decay(it))
     vis = out.visible_planes(len(params[0]))
     stats.seen |= vis
@@ -215,7 +217,7 @@ def _restructure(params: list, opt, stats: _EpochStats, it: int, sched: Schedule
         q = torch.quantile(seen_g.float(), torch.tensor([0.5, 0.9, 0.99], device=seen_g.device)).tolist()
         hist.setdefault("radii_grad_q50_q90_q99", []).append([round(x, 4) for x in q])
     do_split = conf.split and n_round >= conf.split_after_rounds and it <= sched.split_stop and it < sched.max_iters
-    current = Planes(*(p.detach() for p in params))
+    current = _planes(params, detach=True)
     new, imap = prune_and_split(
         current,
         seen=seen if conf.prune_unseen else None,
@@ -228,7 +230,7 @@ def _restructure(params: list, opt, stats: _EpochStats, it: int, sched: Schedule
     if len(new) == 0:
         logger.warning("pruning would remove every plane; keeping the current set")
         new, imap = prune_and_split(current, min_radius=0.0, split_threshold=None)
-    params_new = _live(new)
+    params_new = _carry_rotation(_live(new), params[1], imap.parent)
     fresh = imap.child if conf.zero_moments_of_split else None
     return params_new, _make_optimizer(params_new, conf, old=opt, parent=imap.parent, fresh=fresh), imap
 
@@ -247,8 +249,8 @@ def _prune_invisible(params: list, opt, targets, it: int, sched: Schedule, hist:
         if n_unseen:
             logger.warning("no view renders any plane; keeping the current set")
         return params, opt, None
-    new, imap = prune_and_split(Planes(*(p.detach() for p in params)), seen=seen, min_radius=0.0, split_threshold=None)
-    params_new = _live(new)
+    new, imap = prune_and_split(_planes(params, detach=True), seen=seen, min_radius=0.0, split_threshold=None)
+    params_new = _carry_rotation(_live(new), params[1], imap.parent)
     return params_new, _make_optimizer(params_new, conf, old=opt, parent=imap.parent), imap
 
 
@@ -265,15 +267,35 @@ def _record_epoch(hist: dict, stats: _EpochStats, imap, n_planes: int, lam: floa
                  hist["depth"][-1], hist["normal"][-1], n_planes, imap.n_pruned, imap.n_split)
 
 
-def _clean_start(planes: Planes, dev, on_restructure) -> list:
-    """Drop degenerate planes before optimizing; the live parameters [center, quat, radii]."""
+def _planes(params: list, detach: bool = False) -> Planes:
+    """The :class:`Planes` of the live parameters (the rotation composed where it is two quaternions)."""
+    c, q, r = params[0], composed(params[1]), params[2]
+    return Planes(c.detach(), q.detach(), r.detach()) if detach else Planes(c, q, r)
+
+
+def _carry_rotation(params_new: list, rot: torch.Tensor, parent: torch.Tensor) -> list:
+    """``params_new`` (from :func:`_live` of a restructured set) with the two-quaternion rotation of each plane's
+    parent, where ``rot`` is one (a split's children share their parent's rotation)."""
+    if rot.shape[-1] == WIDTH:
+        params_new[1] = rot.detach()[parent].clone(memory_format=torch.contiguous_format).requires_grad_(True)
+    return params_new
+
+
+def _clean_start(planes: Planes, dev, on_restructure, rotation: str = "quaternion") -> list:
+    """Drop degenerate planes before optimizing; the live parameters [center, rotation, radii]: the rotation a
+    quaternion, or with ``rotation`` "normal-inplane" the reference's two (lipmap/planes/rotation.py)."""
     planes = planes.to(device=dev, dtype=torch.float32)
     planes, imap = prune_and_split(planes, min_radius=0.0, split_threshold=None)
     if imap.n_pruned:
         logger.warning("dropped %d degenerate planes (non-finite or non-positive radii) before optimizing", imap.n_pruned)
     if on_restructure:
         on_restructure(imap)
-    return _live(planes)
+    params = _live(planes)
+    if rotation == "normal-inplane":
+        params[1] = split(params[1].detach()).contiguous().requires_grad_(True)
+    elif rotation != "quaternion":
+        raise InputError(f"rotation must be 'quaternion' or 'normal-inplane', got {rotation!r}")
+    return params
 
 
 ExtraLoss = Callable[[object, Planes, int, RenderOutput, ViewTarget], Optional[torch.Tensor]]
@@ -312,7 +334,7 @@ def optimize_planes(
         targets = TargetStore(targets, conf, device=dev)
     if not targets:
         raise InputError("no view with depth and pose to optimize planes against")
-    params = _clean_start(planes, dev, on_restructure)
+    params = _clean_start(planes, dev, on_restructure, conf.rotation)
     opt = _make_optimizer(params, conf)
     sched = Schedule.of(conf, len(targets))
     fine, fine_from = _fine_targets(targets, conf, sched, dev)
@@ -368,7 +390,7 @@ def optimize_planes(
             stats = _EpochStats.zeros(len(params[0]), dev)
     if bar is not None:
         bar.close()
-    return Planes(*(p.detach() for p in params)), hist
+    return _planes(params, detach=True), hist
 
 
 def _fine_targets(targets, conf: PlaneOptConfig, sched: Schedule, dev):
