@@ -345,7 +345,7 @@ def _add_mapping_args(p, method_default: str):
 
     p.add_argument("--preset", default="fast", choices=list(mapping_confs),
                    help="mapping preset: fast (CPU; plane edges + lines lifted onto the planes), quick (tests, small "
-                        "scenes), paper (reference settings, plane edges only; hours on a CPU)")
+                        "scenes), paper (reference settings, plane edges only, merged and unmerged maps; hours on a CPU)")
     p.add_argument("--method", default=method_default, choices=list(METHODS), help="line map method")
     p.add_argument("--mapping-step", type=int_at_least(1), default=1, help="use every k-th mapping frame")
     p.add_argument("--keyframes", default=None, type=_keyframes, metavar="CM,DEG",
@@ -492,7 +492,14 @@ def _add_eval_parser(sub):
 
 
 def _add_map_parser(sub):
-    p = sub.add_parser("map", help="build a line map (linemap.h5, linemap.ply, planes.ply, linemap.html: interactive 3D view)")
+    p = sub.add_parser(
+        "map", help="build a line map (linemap.h5, linemap.ply, planes.ply, linemap.html: interactive 3D view)",
+        description="Build a line map. Method lipmap fits planes to each mapping view's depth and normals: the normals "
+                    "are read from frame-*.normal.png (camera frame, lipmap.imageio) where the scene has them, else "
+                    "computed from the depth. The paper's planes were fitted to normals predicted by Omnidata, which "
+                    "this command does not run: write them as frame-*.normal.png to map as the paper did. Preset "
+                    "paper also writes linemap_unmerged.h5 (one line per accepted plane edge) beside the merged "
+                    "linemap.h5, as the reference code does.")
     p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True,
                    help="7scenes (the official layout, or scenes cut from it) or synthetic (scenes made by `lipmap-loc synth`)")
     p.add_argument("--root", type=Path, required=True, help="dataset root (holds <scene>/TrainSplit.txt)")

@@ -1,9 +1,11 @@
 """Plane optimization against depth and normal maps (LiP-Map / PlanarSplatting, plane part): the training loop.
 
-One view per iteration (seeded order), Adam on centre, quaternion and radii, plane loss
-``2 * depth L1 + 5 * (normal L1 + (1 - cos))`` weighted ``10 * max(exp(-i / max_iters), 0.1)``,
-re-centring after every step, and once per epoch (or every ``restructure_every`` iterations, if longer) pruning
-(smallest radius <= 1.25e-3 or seen by no view) and splitting (mean |grad| of an axis's radii >= threshold). Reference-code facts are in
+One view per iteration (a seeded permutation per epoch, or in sequence), Adam on centre, rotation (one quaternion, or
+the reference's two) and radii, plane loss ``2 * depth L1 + 5 * (normal L1 + (1 - cos))`` weighted
+``10 * max(exp(-i / max_iters), 0.1)``, re-centring after every step, and once per epoch (or every
+``restructure_every`` iterations, if longer) pruning (smallest radius <= 1.25e-3, and seen by no view of the round
+unless ``prune_unseen_every`` renders every view for that on its own schedule) and splitting (an axis's radii's
+|grad| statistic >= threshold, ``split_grad_reduce``). Reference-code facts are in
 docs/design.md; what is ours is said where it is done.
 
 Hook for the line loss: ``optimize_planes(..., extra_loss=f)`` adds ``f(view, planes, iteration,
