@@ -2,7 +2,7 @@
 
     python benchmarks/mapping_table.py --dataset 7scenes --root ../shared/data/7scenes-redkitchen-mini \
         --scene redkitchen --out OUT [--preset fast] [--methods lipmap,lift] [--plane-depth-tols 0] \
-        [--pose-source posetxt|dslam|sfm]
+        [--pose-source posetxt|dslam|sfm] [--unmerged]
 
 Maps with each method into OUT/<method> (an existing linemap.h5 made with the same settings is reused, as
 `lipmap-loc map` does), evaluates against the scene's ground truth (its mesh, else fused depth: the same as
@@ -14,6 +14,8 @@ same planes (OUT/lipmap-tol<value>, reusing OUT/lipmap's planes.h5 and lines2d.h
 ``--pose-source`` maps (and fuses the ground truth) with another pose source of a 7-Scenes scene: pose.txt
 drifts by centimetres along a sequence, which blurs the fused ground truth and breaks multi-view line tracks;
 the result file then ends in ``-<pose source>``.
+A lipmap row scores ``linemap.h5``; where the preset also writes the unmerged map (``paper``, as the reference
+code does) the row says "merged map", and ``--unmerged`` adds a row for ``linemap_unmerged.h5``.
 """
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ from pathlib import Path
 from lipmap.datasets import load_scene
 from lipmap.evaluation import evaluate_linemap, load_ground_truth, scene_ground_truth
 from lipmap.linemap import LineMap
-from lipmap.mapping.pipeline import edge_line_mask, map_scene
+from lipmap.mapping.pipeline import UNMERGED, edge_line_mask, map_scene
 from lipmap.planes.io import load_planes_meta
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -63,6 +65,8 @@ def main(argv=None):
     ap.add_argument("--label", default=None, help="the scene's name in the table (default: scene (ground truth kind))")
     ap.add_argument("--tag", default="", help="suffix of the results file name (e.g. noisy-depth)")
     ap.add_argument("--pose-source", default="posetxt", help="7-Scenes poses: posetxt | dslam | sfm")
+    ap.add_argument("--unmerged", action="store_true",
+                    help="also score lipmap's unmerged map (linemap_unmerged.h5, where the preset writes it)")
     args = ap.parse_args(argv)
     results.require_clean()  # before the run: figures from a dirty tree reproduce from no commit
     kw = {} if args.pose_source == "posetxt" else {"pose_source": args.pose_source}
@@ -78,8 +82,15 @@ def main(argv=None):
         rows.append(cells)
 
     for method in args.methods.split(","):
-        lm = LineMap.load(map_scene(scene, args.out / method, args.preset, method))
-        add(f"{method} `{args.preset}`" if method == "lipmap" else method, lm, mapping_seconds(lm, args.out / method))
+        path = map_scene(scene, args.out / method, args.preset, method)
+        lm = LineMap.load(path)
+        both = method == "lipmap" and (path.parent / UNMERGED).exists()
+        name = f"{method} `{args.preset}`" + (" (merged map)" if both else "") if method == "lipmap" else method
+        add(name, lm, mapping_seconds(lm, args.out / method))
+        if args.unmerged and method == "lipmap":
+            if not both:
+                raise SystemExit(f"--unmerged: preset {args.preset} writes no {UNMERGED}")
+            add("(its unmerged map)", LineMap.load(path.parent / UNMERGED))
         if method == "lipmap":
             edges = edge_line_mask(lm)
             if not edges.all():

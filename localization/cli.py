@@ -251,7 +251,19 @@ def cmd_map_eval(args):
     from lipmap.linemap import LineMap
 
     path = Path(args.linemap)
+    if args.unmerged:
+        from lipmap.mapping.pipeline import UNMERGED
+
+        if path.is_dir() or not path.with_name(UNMERGED).exists():
+            raise InputError(f"--unmerged: no {UNMERGED} beside {path} (written by presets with write_unmerged, "
+                             "e.g. paper)", path)
+        path = path.with_name(UNMERGED)
     lm = LineMap.from_limap(path) if path.is_dir() else LineMap.load(path)
+    which = lm.metadata.get("map")
+    if which is None:  # maps written before the key, and other methods' maps
+        merge = lm.metadata.get("config", {}).get("extract", {}).get("merge") if lm.metadata.get("method") == "lipmap" else None
+        which = {None: "as written", "none": "unmerged"}.get(merge, "merged")
+    print(f"map: {path} ({which}, {len(lm)} lines)")
     if args.min_support > 0:
         n_all = len(lm)
         lm = lm.subset(lm.supports[:, 0] >= args.min_support)
@@ -270,6 +282,7 @@ def cmd_map_eval(args):
         overrides["m1_thresholds"] = args.thresholds
     res = evaluate_linemap(lm, gt, **overrides)
     res["min_support"] = args.min_support
+    res["map"], res["linemap"] = which, str(path)
     print(format_metrics(res))
     lines_h5 = path.with_name("lines2d.h5")
     if args.gt is None and path.is_file() and lines_h5.exists():
@@ -278,7 +291,7 @@ def cmd_map_eval(args):
               "(within 2 px and 1 deg of a detection; lipmap.image_support)")
     from lipmap.viz import plot_pr_curve
 
-    png = Path(args.linemap).with_name(Path(args.linemap).stem + "_pr.png")
+    png = path.with_name(path.stem + "_pr.png")
     plot_pr_curve(lm, gt, png)
     print(f"precision/recall plot: {png}")
     if args.json:
@@ -332,7 +345,7 @@ def _add_mapping_args(p, method_default: str):
 
     p.add_argument("--preset", default="fast", choices=list(mapping_confs),
                    help="mapping preset: fast (CPU; plane edges + lines lifted onto the planes), quick (tests, small "
-                        "scenes), paper (reference settings, plane edges only; hours on a CPU)")
+                        "scenes), paper (reference settings, plane edges only, merged and unmerged maps; hours on a CPU)")
     p.add_argument("--method", default=method_default, choices=list(METHODS), help="line map method")
     p.add_argument("--mapping-step", type=int_at_least(1), default=1, help="use every k-th mapping frame")
     p.add_argument("--keyframes", default=None, type=_keyframes, metavar="CM,DEG",
@@ -479,7 +492,14 @@ def _add_eval_parser(sub):
 
 
 def _add_map_parser(sub):
-    p = sub.add_parser("map", help="build a line map (linemap.h5, linemap.ply, planes.ply, linemap.html: interactive 3D view)")
+    p = sub.add_parser(
+        "map", help="build a line map (linemap.h5, linemap.ply, planes.ply, linemap.html: interactive 3D view)",
+        description="Build a line map. Method lipmap fits planes to each mapping view's depth and normals: the normals "
+                    "are read from frame-*.normal.png (camera frame, lipmap.imageio) where the scene has them, else "
+                    "computed from the depth. The paper's planes were fitted to normals predicted by Omnidata, which "
+                    "this command does not run: write them as frame-*.normal.png to map as the paper did. Preset "
+                    "paper also writes linemap_unmerged.h5 (one line per accepted plane edge) beside the merged "
+                    "linemap.h5, as the reference code does.")
     p.add_argument("--dataset", choices=["7scenes", "synthetic"], required=True,
                    help="7scenes (the official layout, or scenes cut from it) or synthetic (scenes made by `lipmap-loc synth`)")
     p.add_argument("--root", type=Path, required=True, help="dataset root (holds <scene>/TrainSplit.txt)")
@@ -500,6 +520,10 @@ def _add_map_parser(sub):
 def _add_map_eval_parser(sub):
     p = sub.add_parser("map-eval", help="mapping metrics M1 / M2 of a line map against a mesh or point cloud")
     p.add_argument("--linemap", type=Path, required=True, help="linemap.h5, or a LIMAP folder holding finaltracks/")
+    p.add_argument("--unmerged", action="store_true",
+                   help="evaluate the unmerged map beside --linemap (linemap_unmerged.h5: one line per accepted plane "
+                        "edge, written by the paper preset as the reference code does) instead of the merged one; "
+                        "the output names the map it scores")
     p.add_argument("--gt", type=Path, default=None, help="GT mesh or point cloud (PLY)")
     p.add_argument("--thresholds", default=None, type=number_list(0.0, True, None, "metres > 0 separated by commas, e.g. 0.02,0.05"),
                    help="M1 thresholds in metres, comma separated (default 0.05)")

@@ -1,5 +1,7 @@
 """The switches by which ``--preset paper`` follows the reference code (and ``fast`` departs from it),
 each on a known answer."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -55,10 +57,103 @@ def test_moments_of_centre_and_radii_reset_after_recentring():
 
 def test_split_criterion_mean_or_max_of_the_two_radii():
     g = torch.tensor([[0.1, 0.5, 0.2, 0.2]])
-    for reduce, want in (("mean", [0.3, 0.2]), ("max", [0.5, 0.2])):
+    for reduce, want in (("mean", [0.3, 0.2]), ("max", [0.5, 0.2]), ("max_of_means", [0.5, 0.2])):
         s = _EpochStats.zeros(1, "cpu")
         s.add_step(torch.tensor(1.0), None, g, torch.tensor([True]), reduce)
         assert s.radii_grad()[0].tolist() == pytest.approx(want)
+
+
+def test_split_statistic_max_of_means_over_the_round():
+    """The reference (``get_split_mask_via_radii_grad`` on ``radii_grad_accum / radii_grad_denom``): each radius's
+    |grad| averaged over the steps that saw the plane, then the larger of the + and - sides. Two steps whose larger
+    side alternates: x+ |grad| 0.4 then 0, x- 0 then 0.4: max of means 0.2, mean of max 0.4 (under a 0.3 threshold
+    the reference does not split, the step-wise max does). A step that did not see the plane is not counted."""
+    steps = [torch.tensor([[0.4, 0.0, 0.1, 0.3]]), torch.tensor([[0.0, 0.4, 0.1, 0.3]]), torch.tensor([[9.0, 9.0, 9.0, 9.0]])]
+    got = {}
+    for reduce in ("max", "max_of_means", "mean"):
+        s = _EpochStats.zeros(1, "cpu")
+        for g, vis in zip(steps, (True, True, False)):
+            s.add_step(torch.tensor(1.0), None, g * vis, torch.tensor([vis]), reduce)
+        got[reduce] = s.radii_grad()[0].tolist()
+    assert got["max"] == pytest.approx([0.4, 0.3]) and got["max_of_means"] == pytest.approx([0.2, 0.3])
+    assert got["mean"] == pytest.approx([0.2, 0.2])
+    assert PlaneOptConfig.preset("paper").split_grad_reduce == "max_of_means"
+    assert PlaneOptConfig.preset("fast-lines").split_grad_reduce == "mean"
+
+
+def test_split_children_start_with_zero_moments():
+    """The reference appends a split's new planes to Adam with zeroed moments (``cat_tensors_to_optimizer``) and
+    prunes their parent; the planes that were not split keep theirs. ``fast`` copies the parent's moments."""
+    planes = Planes.from_normals([[0.0, 0, 2.0], [0.5, 0, 2.0]], [[0, 0, -1.0]] * 2, [0.2, 0.2])
+    params = [t.clone().requires_grad_(True) for t in planes.tensors()]
+    got = {}
+    for name in ("fast-lines", "paper"):
+        conf = replace(PlaneOptConfig.preset(name), split_after_rounds=0)
+        opt = _make_optimizer(params, conf)
+        _apply_step(opt, params, sum((p * torch.arange(1.0, p.numel() + 1).view_as(p)).sum() for p in params))
+        stats = _EpochStats.zeros(2, "cpu")
+        stats.add_step(torch.tensor(1.0), None, torch.tensor([[1.0] * 4, [0.0] * 4]), torch.tensor([True, True]),
+                       conf.split_grad_reduce)
+        new, opt_new, imap = _restructure(params, opt, stats, 10, Schedule.of(conf, 10), {}, n_round=1)
+        assert imap.n_split == 1 and len(new[0]) == 5 and imap.child.tolist() == [False] + [True] * 4
+        got[name] = [opt_new.state[p]["exp_avg"].abs().sum(-1) for p in new]
+    for m in got["fast-lines"]:
+        assert (m > 0).all()  # the children took plane 0's moments
+    for m in got["paper"]:
+        assert m[0] > 0 and (m[1:] == 0).all()  # plane 1 (not split) keeps its moments
+
+
+def test_paper_walks_the_views_in_sequence():
+    """The reference's ``data_order = sequential``: view i at iteration i (mod the views); ``fast`` shuffles."""
+    from lipmap.planes.train import optimize_planes
+
+    targets = [_target(np.full((80, 100), 2.0 + 0.1 * i)) for i in range(4)]
+    planes = Planes.from_normals([[0.0, 0, 2.0]], [[0, 0, -1.0]], [0.5])
+    seen = {}
+    for name in ("fast", "paper"):
+        order = []
+
+        def extra(view, pl, it, render, tgt):
+            order.append(next(i for i, t in enumerate(targets) if t is tgt))
+            return None
+
+        conf = replace(PlaneOptConfig.preset(name), epochs=2, iterations=0, progress=False, device="cpu", split=False,
+                       prune_unseen=False, prune_unseen_every=0)
+        optimize_planes(targets, planes, conf, extra_loss=extra)
+        seen[name] = order
+    assert seen["paper"] == [0, 1, 2, 3] * 2
+    assert sorted(seen["fast"][:4]) == [0, 1, 2, 3] and seen["fast"] != seen["paper"]
+
+
+def test_paper_prunes_invisible_planes_at_iteration_0_and_every_1000():
+    """The reference checks visibility (every view rendered) before its first step and after steps 1000, 2000, ...;
+    its prune/split rounds only prune small planes. Ours by default prunes at each round the planes that round's
+    views did not render. A plane behind every camera goes at iteration 0 under ``paper``."""
+    from lipmap.planes.train import optimize_planes
+
+    targets = [_target(np.full((80, 100), 2.0)) for _ in range(3)]
+    planes = Planes.from_normals([[0.0, 0, 2.0], [0.0, 0, -2.0]], [[0, 0, -1.0], [0, 0, 1.0]], [0.5, 0.5])
+    calls = []
+    conf = replace(PlaneOptConfig.preset("paper"), iterations=7, progress=False, device="cpu", split=False,
+                   prune_unseen_every=2, cull_back_faces=False, min_center_depth=0.0, max_hits=5)
+    _, hist = optimize_planes(targets, planes, conf, on_restructure=lambda imap: calls.append(imap.n_old))
+    # the clean start, the check at 0 (2 -> 1), rounds after 3, 6 and 7 (the last) steps; checks after the steps
+    # of the reference's iterations 2, 4 and 6, with nothing left to prune
+    assert [it for it, _ in hist["invisible_pruned"]] == [0, 2, 4, 6] and hist["invisible_pruned"][0][1] == 1
+    assert calls == [2, 2, 1, 1, 1] and hist["planes"] == [1, 1, 1] and hist["unseen"] == [0, 0, 0]
+
+
+def test_paper_counts_pixels_without_a_target_normal():
+    """The reference's normal loss masks on the render alone (``valid_ray_mask``): a rendered pixel whose target
+    normal is zero costs |n|_1 + 1 (here 1 + 1) and is counted; ours leaves it out."""
+    normal = torch.tensor([[[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]]], requires_grad=True)
+    r = RenderOutput(torch.zeros(1, 2, requires_grad=True), normal, torch.ones(1, 2), torch.zeros(1, 2, 1, dtype=torch.long))
+    tgt = ViewTarget(None, CAM, torch.eye(4), torch.zeros(1, 2), torch.tensor([[[0.0, 0, -1], [0, 0, 0]]]),
+                     torch.zeros(1, 2, dtype=torch.bool), torch.tensor([[True, False]]))
+    paper = PlaneOptConfig.preset("paper")
+    assert paper.normal_loss_on_invalid_targets
+    assert plane_loss(r, tgt, paper)[1]["normal"] == pytest.approx(2.0 / 2)
+    assert plane_loss(r, tgt, replace(paper, normal_loss_on_invalid_targets=False))[1]["normal"] == pytest.approx(0.0)
 
 
 def test_extraction_distance_max_or_mean_of_the_endpoint_distances():
@@ -287,7 +382,12 @@ def test_paper_splits_after_one_pass_over_the_views():
 def test_paper_preset_follows_the_reference_code():
     conf = get_conf("paper")
     planes = PlaneOptConfig.preset(conf.planes)
-    assert (planes.split_grad_reduce, planes.depth_loss_on_rendered, planes.reset_moments_on_recenter) == ("max", True, True)
+    assert (planes.split_grad_reduce, planes.depth_loss_on_rendered, planes.reset_moments_on_recenter) == ("max_of_means", True, True)
+    assert (planes.zero_moments_of_split, planes.view_order, planes.prune_unseen_every) == (True, "sequential", 1000)
+    assert planes.normal_loss_on_invalid_targets and planes.max_depth == 10.0
+    # the reference's fusion: 1 cm voxels, 2 cm truncation, every view, depth to 10 m, 10,000 planes
+    i = planes.init
+    assert (i.voxel_size, i.voxel_size * i.trunc_voxels, i.max_frames, i.max_depth, i.n_planes) == (0.01, 0.02, 0, 10.0, 10000)
     assert (planes.adam_betas, planes.adam_eps) == ((0.9, 0.99), 1e-15)
     assert (planes.normal_loss_normalized, planes.normal_loss_on_rendered, planes.normal_frame) == (True, True, "world")
     # the reference renderer: 30 contributors per pixel, back faces and planes whose centre is nearer than 0.2 m culled
@@ -301,3 +401,150 @@ def test_paper_preset_follows_the_reference_code():
     assert (conf.line_weight, conf.endpoint_weight, conf.robust_scale, conf.on_plane_lines) == (0.1, 0.5, 0.0, False)
     assert conf.line_depth_gate == 0 and get_conf("fast").line_depth_gate > 0  # the gate is ours, not the reference's
     assert (conf.extract.max_dist, conf.extract.max_angle) == (1.0, 0.01)
+
+
+def test_paper_gives_each_pixel_to_one_line():
+    """The reference's attraction field labels each pixel with one line (``compute_point_line_attraction``): where
+    two lines' 1-pixel regions overlap, the pixel goes to the nearer. Lines at y = 10.2 and 11.0 (x 5..20): row 10
+    (centres at y 10.5) lies 0.3 px from the first and 0.5 px from the second."""
+    from lipmap.mapping.assign import line_regions
+
+    lines = np.array([[5.0, 10.2, 20.0, 10.2], [5.0, 11.0, 20.0, 11.0]])
+    rows = {}
+    for exclusive in (False, True):
+        pix, li = line_regions(lines, 40, 30, exclusive=exclusive)
+        rows[exclusive] = [sorted(set(pix[li == k, 1].tolist())) for k in (0, 1)]
+        assert all((li == k).sum() == 15 * len(r) for k, r in enumerate(rows[exclusive]))
+    assert rows == {False: [[9, 10], [10, 11]], True: [[9, 10], [11]]}
+    conf = get_conf("paper")
+    assert conf.one_line_per_pixel and conf.extract.exclusive_pixels and line_supervision({}, conf).exclusive_pixels
+    assert not get_conf("fast").one_line_per_pixel and not get_conf("fast").extract.exclusive_pixels
+
+
+def _edge_corners(segments):
+    """Corners (K, 4, 3) whose first edge (v1 -> v2) is each segment (2, 3); the rest of each rectangle 1 m above."""
+    s = np.asarray(segments, dtype=float)
+    up = np.array([0, 0, 1.0])
+    return np.stack([s[:, 0], s[:, 1], s[:, 1] + up, s[:, 0] + up], 1)
+
+
+def _obs(rows):
+    r = np.array(rows, dtype=np.int64)
+    return {"view": r[:, 0], "line": r[:, 1], "plane": r[:, 2], "edge": np.zeros(len(r), dtype=np.int64),
+            "n_pixels": np.ones(len(r), dtype=np.int64)}
+
+
+def test_reference_global_merge_never_joins_groups():
+    """Four collinear edges A..D (x 0-1, 1-2, 2-3, 3-4): view 0's first detection sees A, B, its second C, D; view
+    1's detection sees B, C. The reference gives A, B one group and C, D another; the cluster {B, C} has no new
+    edge, so nothing changes: two lines. Connected components join the groups through it: one line."""
+    from lipmap.mapping.extract import ExtractConfig, merge_edges
+
+    x = np.arange(5.0)
+    corners = _edge_corners([[[x[i], 0, 2], [x[i + 1], 0, 2]] for i in range(4)])
+    obs = _obs([(0, 0, 0), (0, 0, 1), (0, 1, 2), (0, 1, 3), (1, 0, 1), (1, 0, 2)])
+    lines = {}
+    for rule in ("components", "reference"):
+        lines[rule], obs_line, edge_line = merge_edges(corners, obs, ExtractConfig(min_length=0.0, global_rule=rule))
+    assert len(lines["components"]) == 1 and len(lines["reference"]) == 2
+    spans = sorted(sorted(l[:, 0].round(6).tolist()) for l in lines["reference"])
+    assert spans == [[0.0, 2.0], [2.0, 4.0]]
+    assert edge_line[:, 0].tolist() == [0, 0, 1, 1]
+    assert get_conf("paper").extract.global_rule == "reference" and get_conf("fast").extract.global_rule == "components"
+
+
+def test_reference_global_merge_distance_is_one_sided():
+    """A 2 cm edge a at the origin along x and a 2 m edge b through it at 0.1 rad: a's points lie within 0.6 mm of
+    b's line, b's points 5.5 cm (mean) from a's. The reference's DBSCAN (eps 1 cm) on the one-sided matrix puts b in
+    a's neighbourhood: one line; the symmetrised distance (2.8 cm) keeps them apart."""
+    from lipmap.mapping.extract import ExtractConfig, _edge_distance_matrix, merge_edges
+
+    t = 0.1
+    segs = [[[-0.01, 0, 2], [0.01, 0, 2]], [[-np.cos(t), -np.sin(t), 2], [np.cos(t), np.sin(t), 2]]]
+    corners = _edge_corners(segs)
+    D = _edge_distance_matrix(np.asarray(segs), symmetric=False)
+    assert D[0, 1] < 1e-3 and D[1, 0] == pytest.approx(np.mean(np.abs(np.linspace(-1, 1, 10))) * np.sin(t), rel=1e-6)
+    obs = _obs([(0, 0, 0), (0, 0, 1)])
+    n = {rule: len(merge_edges(corners, obs, ExtractConfig(min_length=0.0, global_rule=rule))[0])
+         for rule in ("components", "reference")}
+    assert n == {"components": 2, "reference": 1}
+
+
+def test_paper_writes_the_merged_and_the_unmerged_map(tmp_path):
+    """``paper`` writes linemap.h5 (the reference's global merge) and linemap_unmerged.h5 (one line per accepted
+    plane edge), each saying which it is; a second call reuses both. A short run of the preset (its switches, fewer
+    iterations, coarser fusion) on a tiny synthetic room."""
+    from lipmap.datasets import load_scene
+    from lipmap.datasets.synthetic import SynthConfig, generate_scene
+    from lipmap.linemap import LineMap
+    from lipmap.mapping.pipeline import UNMERGED, map_scene
+
+    generate_scene(tmp_path / "data", seed=1, preset=SynthConfig("tiny", 160, 120, 131.25, 131.25, 80.0, 60.0,
+                                                                   n_mapping=6, n_query=1, texels_per_m=100.0))
+    scene = load_scene("synthetic", tmp_path / "data", "room-s1")
+    conf = {"preset": "paper", "planes": {"preset": "paper", "iterations": 24, "prune_unseen_every": 12,
+                                          "init": {"voxel_size": 0.05, "n_planes": 400}}}
+    path = map_scene(scene, tmp_path / "m", conf)
+    merged, unmerged = LineMap.load(path), LineMap.load(path.with_name(UNMERGED))
+    assert (merged.metadata["map"], unmerged.metadata["map"], merged.metadata["unmerged_file"]) == ("merged", "unmerged", UNMERGED)
+    assert 0 < len(merged) <= len(unmerged)
+    assert unmerged.metadata["config"]["extract"]["merge"] == "none"
+    mtime = path.stat().st_mtime_ns
+    assert map_scene(scene, tmp_path / "m", conf) == path and path.stat().st_mtime_ns == mtime
+
+
+def test_map_eval_says_which_map_it_scores(tmp_path):
+    """``lipmap-loc map-eval`` names the map it scores; ``--unmerged`` scores linemap_unmerged.h5 beside --linemap,
+    and refuses where there is none."""
+    import json
+
+    import trimesh
+
+    from localization.cli import main
+    from lipmap.linemap import LineMap
+    from lipmap.mapping.pipeline import UNMERGED
+
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    box.export(tmp_path / "box.ply")
+    seg = np.array([[[-0.5, -0.5, 0.5], [0.5, -0.5, 0.5]], [[-0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]])
+    LineMap(seg[:1], [[]], metadata={"map": "merged", "method": "lipmap"}).save(tmp_path / "linemap.h5")
+    LineMap(seg, [[], []], metadata={"map": "unmerged", "method": "lipmap"}).save(tmp_path / UNMERGED)
+    for flag, which, name in (([], "merged", "linemap.h5"), (["--unmerged"], "unmerged", UNMERGED)):
+        out = tmp_path / f"eval{len(flag)}.json"
+        assert main(["map-eval", "--linemap", str(tmp_path / "linemap.h5"), *flag, "--gt", str(tmp_path / "box.ply"),
+                     "--json", str(out)]) == 0
+        res = json.loads(out.read_text())
+        assert (res["map"], Path(res["linemap"]).name, res["n_lines"]) == (which, name, len(flag) + 1)
+    (tmp_path / UNMERGED).unlink()
+    assert main(["map-eval", "--linemap", str(tmp_path / "linemap.h5"), "--unmerged", "--gt", str(tmp_path / "box.ply")]) == 2
+
+
+def test_paper_rotation_is_two_quaternions_never_renormalised():
+    """The reference's rotation: a normal quaternion (w, x, y) and an in-plane one (w, z), q = q_n * q_z, each
+    normalised where used and never in place. Its first Adam step moves each of the five numbers by lr x the sign of
+    its gradient, and they stay where the step put them; ``fast``'s one quaternion is renormalised after the step."""
+    from lipmap.planes.primitives import quat_to_rotmat
+    from lipmap.planes.rotation import composed, split
+
+    q = torch.nn.functional.normalize(torch.tensor(np.random.default_rng(0).normal(size=(50, 4))), dim=-1)
+    assert torch.allclose(quat_to_rotmat(composed(split(q))), quat_to_rotmat(q), atol=1e-12)
+    # q_n = (cos 30, sin 30, 0): the normal turned 60 deg about x; q_z = (cos 45, sin 45): the x axis turned 90 deg
+    rot = torch.tensor([[np.cos(np.pi / 6), np.sin(np.pi / 6), 0.0, np.cos(np.pi / 4), np.sin(np.pi / 4)]])
+    R = quat_to_rotmat(composed(rot))[0]
+    assert torch.allclose(R[:, 2], torch.tensor([0.0, -np.sin(np.pi / 3), np.cos(np.pi / 3)]), atol=1e-6)
+    assert torch.allclose(R[:, 0], torch.tensor([0.0, np.cos(np.pi / 3), np.sin(np.pi / 3)]), atol=1e-6)
+
+    conf = PlaneOptConfig.preset("paper")
+    assert conf.rotation == "normal-inplane" and PlaneOptConfig.preset("fast").rotation == "quaternion"
+    params = [torch.zeros(1, 3, requires_grad=True), torch.tensor([[1.0, 0, 0, 1, 0]], requires_grad=True),
+              torch.full((1, 4), 0.1, requires_grad=True)]
+    opt = _make_optimizer(params, conf)
+    g = torch.tensor([[1.0, -1.0, 2.0, -3.0, 4.0]])
+    _apply_step(opt, params, (params[1] * g).sum() + 0 * params[0].sum() + 0 * params[2].sum(), True)
+    lr = conf.lr_quat
+    assert params[1].detach()[0].tolist() == pytest.approx([1 - lr, lr, -lr, 1 + lr, -lr], rel=1e-6)
+    fast = PlaneOptConfig.preset("fast")
+    p4 = [torch.zeros(1, 3, requires_grad=True), torch.tensor([[1.0, 0, 0, 0]], requires_grad=True),
+          torch.full((1, 4), 0.1, requires_grad=True)]
+    _apply_step(_make_optimizer(p4, fast), p4, (p4[1] * g[:, :4]).sum() + 0 * p4[0].sum() + 0 * p4[2].sum())
+    assert float(p4[1].detach().norm()) == pytest.approx(1.0, abs=1e-6)

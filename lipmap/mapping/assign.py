@@ -25,11 +25,14 @@ def corner_edges(corners):
     return corners[:, EDGE_VERTS]
 
 
-def line_regions(lines: np.ndarray, width: int, height: int, radius: float = 1.0, step: float = 0.5):
+def line_regions(lines: np.ndarray, width: int, height: int, radius: float = 1.0, step: float = 0.5,
+                 exclusive: bool = False):
     """Pixels of each segment's 1-pixel region (paper Sec. 3.2).
 
     A pixel belongs to the region of a segment when its centre is within ``radius`` px of the segment
-    and its foot point falls inside the segment.
+    and its foot point falls inside the segment. With ``exclusive`` a pixel in several regions belongs to the
+    nearest segment alone (ties: the first), as the reference's attraction field labels each pixel with one line;
+    else to each of them.
 
     Args:
         lines: :math:`(N, 4)` segments (x1, y1, x2, y2), COLMAP pixel convention.
@@ -64,7 +67,15 @@ def line_regions(lines: np.ndarray, width: int, height: int, radius: float = 1.0
     tt = ((centre - seg[:, :2]) * d).sum(1) / l2
     dist = np.abs(d[:, 0] * (centre[:, 1] - seg[:, 1]) - d[:, 1] * (centre[:, 0] - seg[:, 0])) / np.sqrt(l2)
     keep = (tt >= 0) & (tt <= 1) & (dist <= radius)
-    return pix[keep], cidx[keep]
+    pix, cidx = pix[keep], cidx[keep]
+    if exclusive and len(pix):
+        flat = pix[:, 1] * width + pix[:, 0]
+        order = np.lexsort((cidx, dist[keep], flat))  # per pixel: nearest first, then the lowest line index
+        first = np.ones(len(order), bool)
+        first[1:] = flat[order][1:] != flat[order][:-1]
+        sel = np.sort(order[first])  # the (line, pixel) order of the shared case
+        pix, cidx = pix[sel], cidx[sel]
+    return pix, cidx
 
 
 def pixel_rays_camera(pixels: np.ndarray, camera) -> np.ndarray:
@@ -221,7 +232,7 @@ def _take_rows(x, idx):
 
 
 def assign_lines(raycaster: PlaneRaycaster, corners, lines2d, cam_from_world, camera, pixels=None, line_idx=None,
-                 dist_reduce: str = "max"):
+                 dist_reduce: str = "max", exclusive: bool = False):
     """Assign detected lines to plane edges through the pixels of their 1-pixel regions.
 
     Args:
@@ -235,7 +246,7 @@ def assign_lines(raycaster: PlaneRaycaster, corners, lines2d, cam_from_world, ca
         ``plane`` (P',), ``edge`` (P',), ``angle`` (P',), ``dist`` (P',), ``depth`` (P',) ray distance.
     """
     if pixels is None:
-        pixels, line_idx = line_regions(lines2d, camera.width, camera.height)
+        pixels, line_idx = line_regions(lines2d, camera.width, camera.height, exclusive=exclusive)
     o, d = pixel_rays_world(pixels, cam_from_world, camera)
     plane, dist_ray = raycaster.first_hit(o, d)
     hit = plane >= 0

@@ -32,10 +32,18 @@ class ExtractConfig:
     dist_reduce: str = "max"  # of the two endpoint distances: "max" (the paper's d_orth), "mean" (reference code)
     merge: str = "global"  # none | local | global
     dbscan_eps: float = 0.01  # m, paper tau_dbscan
+    # the global merge's groups: "components" (ours: DBSCAN over the symmetrised distance, then the connected
+    # components of the edges that share a cluster, so groups join through shared edges) or "reference" (its
+    # forward_global_3dlines_theta_dist: DBSCAN over the one-sided distance, the detections in order; a cluster's
+    # new edges take a new group, or the group of one of its edges already grouped; groups never join)
+    global_rule: str = "components"
     track_max_angle: float = 0.01
     track_max_dist: float = 2.0
     track_min_overlap: float = 0.2
     occlusion_tol: float = 0.05  # relative depth tolerance of the visibility test
+    # a pixel in several lines' regions votes for the nearest line only (reference: its attraction field labels each
+    # pixel with one line); off: for each
+    exclusive_pixels: bool = False
     min_views: int = 1  # drop merged lines seen in fewer mapping views
     min_length: float = 0.02  # m
     # Drop a line whose median |line depth - sensor depth| over its tracked views exceeds this (m);
@@ -62,7 +70,8 @@ def extract_observations(corners, views, lines_by_view: dict, conf: ExtractConfi
         lines = np.asarray(lines_by_view.get(v.name, np.zeros((0, 4))), dtype=float)
         if len(lines) == 0:
             continue
-        a = assign_lines(caster, corners, lines, v.cam_from_world, v.camera, dist_reduce=conf.dist_reduce)
+        a = assign_lines(caster, corners, lines, v.cam_from_world, v.camera, dist_reduce=conf.dist_reduce,
+                         exclusive=conf.exclusive_pixels)
         ok = (a["angle"] <= conf.max_angle) & (a["dist"] <= conf.max_dist)
         if ok.any():
             rows.append(np.stack([np.full(ok.sum(), vi), a["line"][ok], a["plane"][ok], a["edge"][ok]], 1))
@@ -85,8 +94,9 @@ def _pca_segment(points: np.ndarray) -> np.ndarray:
     return np.stack([c + t.min() * d, c + t.max() * d])
 
 
-def _edge_distance_matrix(edges: np.ndarray, n: int = 10) -> np.ndarray:
-    """Symmetric mean perpendicular distance between 3D edges (M, 2, 3) -> (M, M), by sampling n points."""
+def _edge_distance_matrix(edges: np.ndarray, n: int = 10, symmetric: bool = True) -> np.ndarray:
+    """Mean perpendicular distance between 3D edges (M, 2, 3) -> (M, M), by sampling n points: entry (a, b) from
+    the points of a to the line of b, or with ``symmetric`` the mean of (a, b) and (b, a)."""
     pts = geo.sample_segments(edges, n)  # (M, n, 3)
     p0 = edges[:, 0]
     d = edges[:, 1] - p0
@@ -94,7 +104,31 @@ def _edge_distance_matrix(edges: np.ndarray, n: int = 10) -> np.ndarray:
     rel = pts[:, None] - p0[None, :, None]  # (M_a, M_b, n, 3) points of a vs line of b
     perp = rel - (rel * d[None, :, None]).sum(-1, keepdims=True) * d[None, :, None]
     D = np.linalg.norm(perp, axis=-1).mean(-1)
-    return 0.5 * (D + D.T)
+    return 0.5 * (D + D.T) if symmetric else D
+
+
+def _reference_groups(det_groups, e_of_obs, E, eps: float) -> np.ndarray:
+    """The group of each edge by the reference's global merge: each detection's edges (in order of the detections)
+    clustered by DBSCAN (min_samples 1) over the one-sided distance; a cluster none of whose edges is grouped yet
+    takes a new group, otherwise its new edges join the group of its last grouped edge (by edge id). Existing groups
+    are never joined together."""
+    from sklearn.cluster import DBSCAN
+
+    group = np.full(len(E), -1, dtype=np.int64)
+    n_groups = 0
+    for grp in det_groups:
+        es = np.unique(e_of_obs[grp])
+        labels = np.zeros(len(es), dtype=np.int64) if len(es) == 1 else \
+            DBSCAN(eps=eps, min_samples=1, metric="precomputed").fit_predict(_edge_distance_matrix(E[es], symmetric=False))
+        for lab in np.unique(labels):
+            members = es[labels == lab]
+            old = members[group[members] >= 0]
+            if len(old) == 0:
+                group[members] = n_groups
+                n_groups += 1
+            else:
+                group[members[group[members] < 0]] = group[old[-1]]
+    return group
 
 
 def merge_edges(corners, obs: dict, conf: ExtractConfig):
@@ -122,6 +156,11 @@ def merge_edges(corners, obs: dict, conf: ExtractConfig):
 
         order = np.argsort(det_of_obs, kind="stable")
         bounds = np.flatnonzero(np.diff(det_of_obs[order])) + 1
+        if conf.merge == "global" and conf.global_rule == "reference":
+            group_of_edge = _reference_groups(np.split(order, bounds), e_of_obs, E, conf.dbscan_eps)
+            return _grouped(E, group_of_edge, e_of_obs, uniq_e, obs, edge_line, conf)
+        if conf.global_rule not in ("components", "reference"):
+            raise ValueError(f"unknown global merge rule {conf.global_rule!r}")
         src, dst = [], []
         local_lines, local_obs = [], []
         for grp in np.split(order, bounds):
@@ -149,6 +188,11 @@ def merge_edges(corners, obs: dict, conf: ExtractConfig):
     else:
         raise ValueError(f"unknown merge mode {conf.merge!r}")
 
+    return _grouped(E, group_of_edge, e_of_obs, uniq_e, obs, edge_line, conf)
+
+
+def _grouped(E, group_of_edge, e_of_obs, uniq_e, obs, edge_line, conf):
+    """One PCA-fitted line per group of edges; the observations and the edge table follow their edge's group."""
     n_groups = group_of_edge.max() + 1
     lines = np.stack([_pca_segment(E[group_of_edge == gi].reshape(-1, 3)) for gi in range(n_groups)])
     obs_line = group_of_edge[e_of_obs]

@@ -28,7 +28,7 @@ def line_supervision(lines_by_view: dict, conf):
                            use_group=conf.group_loss, seed=conf.seed, endpoint_weight=conf.endpoint_weight,
                            robust_scale=conf.robust_scale, max_assign_frac=conf.max_assign_frac,
                            euc_inside_only=conf.euc_inside_only, depth_gate=conf.line_depth_gate,
-                           hard_first_hit=conf.hard_first_hit)
+                           hard_first_hit=conf.hard_first_hit, exclusive_pixels=conf.one_line_per_pixel)
 
 
 def _plane_settings(conf, lines_source=None):

@@ -3,7 +3,9 @@
 ``map_scene(scene, out_dir, conf)`` runs, skipping what its artifacts already hold:
     lines2d.h5      2D lines of the mapping views (LSD, or imported with ``lines_source``)
     planes.h5       planar primitives after the joint line-plane optimization (method ``lipmap``)
-    linemap.h5      3D lines + tracks (+ the planes and edge->line table the line query needs)
+    linemap.h5      3D lines + tracks (+ the planes and edge->line table the line query needs), merged as
+                    ``extract.merge`` says (metadata "map": "merged", or "unmerged" for merge "none")
+    linemap_unmerged.h5  with ``write_unmerged``: the same map with one line per accepted plane edge
 Method ``lift`` back-projects each 2D line with depth instead (the paper's Fig. 1 baseline).
 """
 from __future__ import annotations
@@ -48,6 +50,12 @@ class MappingConfig:
     # each region pixel's plane is the first rectangle its ray meets (paper, reference); off: the render's nearest
     # splat, whose fall-off reaches past the rectangle's edge onto the surface behind
     hard_first_hit: bool = True
+    # a pixel in several lines' 1-pixel regions supervises the nearest line only (reference: its attraction field gives
+    # each pixel one line); off: each line that claims it
+    one_line_per_pixel: bool = False
+    # method lipmap: also write linemap_unmerged.h5, one line per accepted plane edge (extract.merge "none"), beside
+    # the merged linemap.h5, as the reference writes both
+    write_unmerged: bool = False
     # m: the line term pulls a plane only where it lies this close to the sensor depth (0: the paper); without it
     # the term holds planes floating in front of the surface, whose edges fit lines in a few views
     line_depth_gate: float = 0.1
@@ -82,12 +90,14 @@ confs = {
     # extraction on the mean of the endpoint distances, every view, no assignment filter and no minimum line length
     "paper": MappingConfig(preset="paper", planes="paper", line_weight=0.1, pixels_per_line=1, endpoint_weight=0.5,
                            robust_scale=0.0, max_assign_frac=0.0, euc_inside_only=True, hard_first_hit=True,
-                           on_plane_lines=False, line_depth_gate=0.0,
-                           extract=ExtractConfig(dist_reduce="mean", min_length=0.0), refine=RefineConfig(enabled=False),
+                           on_plane_lines=False, line_depth_gate=0.0, one_line_per_pixel=True,
+                           extract=ExtractConfig(dist_reduce="mean", min_length=0.0, exclusive_pixels=True,
+                                                 global_rule="reference"), write_unmerged=True, refine=RefineConfig(enabled=False),
                            keyframes=KeyframeConfig(min_translation=0.0, min_rotation_deg=0.0, max_frame_gap=0)),
 }
 
 METHODS = ("lipmap", "lift")
+UNMERGED = "linemap_unmerged.h5"  # beside linemap.h5, with MappingConfig.write_unmerged
 
 
 def get_conf(conf=None) -> MappingConfig:
@@ -261,7 +271,9 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
     out_dir = Path(out_dir)
     out = out_dir / "linemap.h5"
     stamp = mapping_stamp(scene, conf, method, lines_source)
-    if reuse(out, stamp, overwrite, "mapping"):
+    unmerged = (out_dir / UNMERGED) if conf.write_unmerged and method == "lipmap" else None
+    unmerged_stamp = Stamp("linemap", {**stamp.settings, "map": "unmerged"})
+    if reuse(out, stamp, overwrite, "mapping") and (unmerged is None or reuse(unmerged, unmerged_stamp, False, "mapping")):
         return out
     out_dir.mkdir(parents=True, exist_ok=True)
     checkpoint = checkpoint or (lambda event: None)
@@ -289,11 +301,21 @@ def map_scene(scene, out_dir, conf=None, method: str = "lipmap", lines_source=No
         t = time.time()
         depth = depth_maps(scene.mapping)  # read as needed: memory bounded
         lm = lipmap_linemap(scene, planes, lines_by_view, conf, depth)
+        lm.metadata["map"] = "unmerged" if conf.extract.merge == "none" else "merged"
         timings["extract_s"] = time.time() - t
         from ..planes.check import plane_stats
 
         lm.metadata["plane_stats"] = plane_stats(planes, scene.mapping)
         lm.metadata["planes_file"] = os.path.relpath(planes_dir / "planes.h5", out_dir)  # shared when planes_root
+        if unmerged is not None:  # written before linemap.h5: a linemap.h5 of this stamp implies it is there
+            um = lipmap_linemap(scene, planes, lines_by_view, replace(conf, extract=replace(conf.extract, merge="none")),
+                                depth)
+            um.metadata.update({k: lm.metadata[k] for k in ("plane_stats", "planes_file")})
+            um.metadata.update({"map": "unmerged", "scene": scene.name, "dataset": scene.dataset, "method": method,
+                                "preset": conf.preset, "pose_source": scene.pose_source})
+            um.save(unmerged, stamp=unmerged_stamp)
+            um.to_ply(out_dir / "linemap_unmerged.ply")
+            lm.metadata["unmerged_file"] = UNMERGED
     timings["total_s"] = time.time() - t0
     lm.metadata.update({"scene": scene.name, "dataset": scene.dataset, "pose_source": scene.pose_source,
                         "timings": timings, "method": method, "preset": conf.preset,

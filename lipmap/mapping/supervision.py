@@ -41,13 +41,16 @@ class LineSupervision:
         hard_first_hit: with every region pixel, the first plane is the first rectangle the pixel's ray meets (the
             paper's Sec. 3.2, the reference code, the sampled pixels and the extraction); False: the render's
             nearest composited plane, which can be a neighbour's splat fall-off just past its edge.
+        exclusive_pixels: a pixel in several lines' regions belongs to the nearest line only (the reference's
+            attraction field); False: to each.
         seed: sampling seed (combined with the iteration, so a resumed run samples the same pixels).
     """
 
     def __init__(self, lines_by_view: dict, weight: float = 0.1, pixels_per_line: int = 1, use_group: bool = False,
                  group_weight: float = 10.0, seed: int = 0,
                  endpoint_weight: float = 0.5, robust_scale: float = 0.0, max_assign_frac: float = 0.1,
-                 euc_inside_only: bool = False, depth_gate: float = 0.0, hard_first_hit: bool = False):
+                 euc_inside_only: bool = False, depth_gate: float = 0.0, hard_first_hit: bool = False,
+                 exclusive_pixels: bool = False):
         self.lines = {k: np.asarray(v, dtype=np.float64).reshape(-1, 4) for k, v in lines_by_view.items()}
         self.weight = weight
         self.pixels_per_line = max(0, pixels_per_line if not use_group else max(2, pixels_per_line))
@@ -60,6 +63,7 @@ class LineSupervision:
         self.euc_inside_only = euc_inside_only
         self.depth_gate = depth_gate
         self.hard_first_hit = hard_first_hit
+        self.exclusive_pixels = exclusive_pixels
         self._geometry = LRU(self._make_view_geometry, DEFAULT_CAPACITY)  # bounded: scenes have thousands of views
         self._last = None
         # rows of the edge choice and the loss: the kept pairs only (reads the mask: a host sync) or every candidate
@@ -73,7 +77,8 @@ class LineSupervision:
         return self._make_regions(view.name, view.camera.width, view.camera.height, camera.width, camera.height)
 
     def _make_regions(self, name, full_w, full_h, width, height):
-        return line_regions(self.lines[name] * _axis_scale(full_w, full_h, width, height), width, height)
+        return line_regions(self.lines[name] * _axis_scale(full_w, full_h, width, height), width, height,
+                            exclusive=self.exclusive_pixels)
 
     def _make_view_geometry(self, key):
         # what stays put for a view at one training resolution, on the training device: its lines, the region
@@ -98,7 +103,9 @@ class LineSupervision:
                 "group_weight": self.group_weight, "seed": self.seed, "endpoint_weight": self.endpoint_weight,
                 "robust_scale": self.robust_scale, "max_assign_frac": self.max_assign_frac,
                 "euc_inside_only": self.euc_inside_only, "depth_gate": self.depth_gate,
-                "hard_first_hit": self.hard_first_hit}
+                "hard_first_hit": self.hard_first_hit,
+                # only when on: the stamps of the planes made before the switch existed stay valid
+                **({"exclusive_pixels": True} if self.exclusive_pixels else {})}
 
     @property
     def last(self) -> dict:

@@ -34,6 +34,8 @@ class PlaneOptConfig:
     lr_quat: float = 1e-3
     lr_radii: float = 1e-3
     lr_final_frac: float = 1.0  # learning rates decay exponentially to this fraction by the last iteration
+    # the reference code's weights (weight_mono_depth 2, weight_mono_normal 5); the paper's text writes alpha_D = 5,
+    # alpha_N = 1, which no preset uses (docs/design.md)
     depth_weight: float = 2.0
     normal_weight: float = 5.0
     plane_weight: float = 10.0  # total = plane_weight * decay * plane_loss + extra
@@ -56,18 +58,37 @@ class PlaneOptConfig:
     # and over a subset of them it splits on noise (large synthetic scene, 100 views in rounds of 50: 17,000 planes)
     restructure_every: int = 0
     split_into_four: bool = True  # both axes over the threshold -> 4 children, else 2
-    split_grad_reduce: str = "mean"  # |grad| of an axis from its two radii: "mean", or "max" (reference code)
+    # |grad| of an axis from its two radii (the + and - sides): "mean" of the two at each step, "max" of the two at
+    # each step, both then averaged over the round; or "max_of_means" (reference code): each side's |grad| averaged
+    # over the round, then the larger side
+    split_grad_reduce: str = "mean"
+    # planes made by a split start with zeroed Adam moments (reference code: they are appended to the optimizer with
+    # zeros); off: they take their parent's
+    zero_moments_of_split: bool = False
     depth_loss_on_rendered: bool = False  # depth L1 only where the render has alpha > 1e-5 (reference code)
     # the normal loss as the reference codes it: both normals unit length (the composited one is alpha long) and
     # the mean over the pixels that render (alpha > 1e-5), not every pixel with a target normal
     normal_loss_normalized: bool = False
     normal_loss_on_rendered: bool = False
+    # count the pixels without a target normal (zero) in the normal loss (reference code: its mask is the rendered
+    # pixels alone, and there such a pixel costs 2); off: they are left out
+    normal_loss_on_invalid_targets: bool = False
     normal_frame: str = "camera"  # "world" (reference): the L1 part of the normal loss is not rotation-invariant
+    # "quaternion": one (w, x, y, z) per plane, renormalised after every step; "normal-inplane" (reference code): a
+    # normal quaternion (w, x, y) and an in-plane one (w, z), normalised only where used (lipmap/planes/rotation.py)
+    rotation: str = "quaternion"
     adam_betas: tuple = (0.9, 0.999)  # torch's default; reference (0.9, 0.99)
     adam_eps: float = 1e-8  # torch's default; reference 1e-15
     # zero Adam's moments of centre and radii after every step, keeping the step count: the reference replaces both
     # tensors when it re-centres them after each step; with its betas each moves by ~lr x the sign of its gradient
     reset_moments_on_recenter: bool = False
+    # order of the views: "shuffle" (a seeded permutation per epoch) or "sequential" (reference: data_order
+    # sequential, the views as given)
+    view_order: str = "shuffle"
+    # prune the planes no view renders: 0 = at every prune/split round, from the views that round trained on; N > 0 =
+    # from a pass rendering every view, before the first step and after every N steps (reference: 1000, its
+    # check_plane_vis_freq_ite), not at the rounds
+    prune_unseen_every: int = 0
     split_after_rounds: int = 0  # prune/split rounds that only prune before splitting may begin (reference: 1)
     # planes each view renders: the reference's renderer skips planes whose normal faces away from the camera and
     # planes whose centre is nearer than 0.2 m (its near culling); ours renders both sides and culls nothing
@@ -137,13 +158,27 @@ def _paper() -> PlaneOptConfig:
     # whatever the views, lr 1e-3 with its Adam (betas 0.9 / 0.99, eps 1e-15, centre and radii moments zeroed after
     # each step), 1 cm voxels, its depth and normal losses (unit normals in the world frame, over the rendered
     # pixels), its split criterion from the second round, and its renderer's 30 contributors per pixel, back-face
-    # and near-centre culling, its near plane at 0.1 m. Plane loss 2 * depth + 5 * normal as the reference codes it
-    # (the paper writes depth 5, normal 1 in Sec. 3.3 and normal 5, depth 1 in appendix A; docs/design.md).
-    return PlaneOptConfig(name="paper", epochs=0, iterations=6000, downscale=1, split_grad_reduce="max",
+    # and near-centre culling, its near plane at 0.1 m; its views in sequence, its split statistic (the larger side
+    # of the radii's mean |grad|), split planes' moments from zero, its visibility pruning (iteration 0 and every
+    # 1,000), its fusion (_paper_init). Plane loss 2 * depth + 5 * normal as the reference codes it
+    # (weight_mono_depth, weight_mono_normal in its confs); the paper writes depth 5, normal 1 in Sec. 3.3 and normal 5,
+    # depth 1 in appendix A (docs/design.md).
+    return PlaneOptConfig(name="paper", epochs=0, iterations=6000, downscale=1,
                           depth_loss_on_rendered=True, normal_loss_normalized=True, normal_loss_on_rendered=True,
                           normal_frame="world", adam_betas=(0.9, 0.99), adam_eps=1e-15, reset_moments_on_recenter=True,
                           split_after_rounds=1, cull_back_faces=True, min_center_depth=0.2, near=0.1, max_hits=30,
-                          init=PlaneInitConfig(voxel_size=0.01, depth_downscale=1))
+                          split_grad_reduce="max_of_means", zero_moments_of_split=True,
+                          normal_loss_on_invalid_targets=True, view_order="sequential", prune_unseen_every=1000,
+                          rotation="normal-inplane", max_depth=10.0, init=_paper_init())
+
+
+def _paper_init() -> PlaneInitConfig:
+    # The reference's fusion (GeneralDataset.get_mesh, its RGB-D confs): 1 cm voxels, 2 cm truncation, every view,
+    # depth up to 10 m (depth_trunc), decimated to 10,000 planes (init_plane_num of scannetv2 / scannetpp). Its
+    # volume is sparse (open3d's ScalableTSDFVolume); ours is dense, so the cap on voxels bounds the memory: 100M
+    # voxels are 0.8 GB of grid (TSDF and weight, float32); a box that needs more is fused at coarser voxels.
+    return PlaneInitConfig(n_planes=10000, voxel_size=0.01, trunc_voxels=2.0, max_frames=0, max_depth=10.0,
+                           depth_downscale=1, max_voxels=100_000_000)
 
 
 confs = {"fast": _fast(), "fast-lines": _fast_lines(), "paper": _paper()}

@@ -33,7 +33,8 @@ def plane_loss(render: RenderOutput, target: ViewTarget, conf: PlaneOptConfig) -
         dl = _masked_mean((render.depth - target.depth).abs(), valid)
         parts["depth"] = dl.detach()
         loss = conf.depth_weight * dl
-    nvalid = target.normal_valid & rendered if conf.normal_loss_on_rendered else target.normal_valid
+    nvalid = torch.ones_like(rendered) if conf.normal_loss_on_invalid_targets else target.normal_valid
+    nvalid = nvalid & rendered if conf.normal_loss_on_rendered else nvalid
     if render.normal.requires_grad and has_normal:
         pn, gn = render.normal, target.normal
         if conf.normal_loss_normalized:

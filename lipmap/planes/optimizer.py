@@ -16,8 +16,10 @@ def _live(planes: Planes) -> list:
     return [t.clone(memory_format=torch.contiguous_format).requires_grad_(True) for t in planes.tensors()]
 
 
-def _make_optimizer(params: list, conf: PlaneOptConfig, old: Optional[torch.optim.Adam] = None, parent=None):
-    """Adam over [center, quat, radii]; with ``old`` and ``parent``, moments follow the index map."""
+def _make_optimizer(params: list, conf: PlaneOptConfig, old: Optional[torch.optim.Adam] = None, parent=None,
+                    fresh: Optional[torch.Tensor] = None):
+    """Adam over [center, quat, radii]; with ``old`` and ``parent``, moments follow the index map, except for the
+    planes ``fresh`` (bool, new indices), whose moments start at zero."""
     opt = torch.optim.Adam(
         [
             {"params": [params[0]], "lr": conf.lr_center},
@@ -39,6 +41,9 @@ def _make_optimizer(params: list, conf: PlaneOptConfig, old: Optional[torch.opti
                     "exp_avg": st["exp_avg"][parent].clone(),
                     "exp_avg_sq": st["exp_avg_sq"][parent].clone(),
                 }
+                if fresh is not None:
+                    for key in ("exp_avg", "exp_avg_sq"):
+                        opt.state[p_new][key][fresh] = 0
     return opt
 
 
@@ -78,7 +83,13 @@ def _apply_step(opt: torch.optim.Adam, params: list, total: torch.Tensor, reset_
     elif bool(taken):
         opt.step()
     with torch.no_grad():
-        if not _recenter_fused(params):
+        if params[1].shape[-1] != 4:  # the reference's two quaternions: re-centred, and never renormalised
+            from .rotation import composed
+
+            rec = Planes(params[0], composed(params[1]), params[2]).recentered()
+            params[0].copy_(rec.center)
+            params[2].copy_(rec.radii)
+        elif not _recenter_fused(params):
             rec = Planes(params[0], params[1], params[2]).recentered()
             params[0].copy_(rec.center)
             params[2].copy_(rec.radii)

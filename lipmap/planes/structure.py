@@ -24,6 +24,7 @@ class PlaneIndexMap:
     n_pruned: int = 0
     n_split: int = 0
     n_unseen: int = 0  # of n_pruned: valid and large enough, but seen by no view
+    child: Optional[torch.Tensor] = None  # (K_new,) bool: made by a split (None: no split)
 
     def old_to_new(self) -> torch.Tensor:
         """:math:`(K_{old}, 4)` int64: the new indices of each old plane (-1 padded; all -1 = pruned)."""
@@ -65,6 +66,7 @@ def prune_and_split(
         parent = keep.nonzero().squeeze(1)
         n_pruned = int(K - keep.sum())
         n_split = 0
+        child = None
         if split_threshold is not None and radii_grad is not None and len(base) > 0:
             g = torch.nan_to_num(radii_grad.to(dev)[keep])
             sx, sy = g[:, 0] >= split_threshold, g[:, 1] >= split_threshold
@@ -106,4 +108,5 @@ def prune_and_split(
                 stay = ~split
                 base = Planes.cat([base[stay]] + children)
                 parent = torch.cat([parent[stay]] + parents_new)
-    return base, PlaneIndexMap(parent, K, n_pruned, n_split, n_unseen)
+                child = torch.arange(len(parent), device=parent.device) >= int(stay.sum())
+    return base, PlaneIndexMap(parent, K, n_pruned, n_split, n_unseen, child)

@@ -1,9 +1,11 @@
 """Plane optimization against depth and normal maps (LiP-Map / PlanarSplatting, plane part): the training loop.
 
-One view per iteration (seeded order), Adam on centre, quaternion and radii, plane loss
-``2 * depth L1 + 5 * (normal L1 + (1 - cos))`` weighted ``10 * max(exp(-i / max_iters), 0.1)``,
-re-centring after every step, and once per epoch (or every ``restructure_every`` iterations, if longer) pruning
-(smallest radius <= 1.25e-3 or seen by no view) and splitting (mean |grad| of an axis's radii >= threshold). Reference-code facts are in
+One view per iteration (a seeded permutation per epoch, or in sequence), Adam on centre, rotation (one quaternion, or
+the reference's two) and radii, plane loss ``2 * depth L1 + 5 * (normal L1 + (1 - cos))`` weighted
+``10 * max(exp(-i / max_iters), 0.1)``, re-centring after every step, and once per epoch (or every
+``restructure_every`` iterations, if longer) pruning (smallest radius <= 1.25e-3, and seen by no view of the round
+unless ``prune_unseen_every`` renders every view for that on its own schedule) and splitting (an axis's radii's
+|grad| statistic >= threshold, ``split_grad_reduce``). Reference-code facts are in
 docs/design.md; what is ours is said where it is done.
 
 Hook for the line loss: ``optimize_planes(..., extra_loss=f)`` adds ``f(view, planes, iteration,
@@ -31,6 +33,7 @@ from .io import export_planes_ply, save_planes
 from .losses import _pulls, _total_loss, plane_loss
 from .optimizer import _apply_step, _live, _make_optimizer
 from .primitives import Planes, quat_to_rotmat
+from .rotation import WIDTH, composed, split
 from .render import RenderOutput, lambda_schedule, rasterize_planes
 from .structure import prune_and_split
 from .targets import TargetStore, ViewTarget
@@ -89,6 +92,8 @@ class _EpochStats:
     used: object = 0  # steps taken
     skipped: int = 0  # views without a loss
     dropped: object = 0  # steps the device skipped (a non-finite loss, or nothing to pull on)
+    # (K, 4) sum of |grad| of each radius, for reduce "max_of_means" (the larger side is taken once, of the means)
+    grad_sides: Optional[torch.Tensor] = None
 
     @classmethod
     def zeros(cls, K: int, device) -> "_EpochStats":
@@ -102,12 +107,16 @@ class _EpochStats:
         w = None if taken is None else taken.to(self.grad_sum.dtype)
         if w is not None:
             g = g * w
-        if reduce == "max":
+        if reduce == "max_of_means":
+            self.grad_sides = g if self.grad_sides is None else self.grad_sides + g
+        elif reduce == "max":
             self.grad_sum[:, 0] += torch.maximum(g[:, 0], g[:, 1])
             self.grad_sum[:, 1] += torch.maximum(g[:, 2], g[:, 3])
-        else:
+        elif reduce == "mean":
             self.grad_sum[:, 0] += 0.5 * (g[:, 0] + g[:, 1])
             self.grad_sum[:, 1] += 0.5 * (g[:, 2] + g[:, 3])
+        else:
+            raise InputError(f"split_grad_reduce must be 'mean', 'max' or 'max_of_means', got {reduce!r}")
         self.grad_count += vis.float() if w is None else vis.float() * w
 
         def value(x):
@@ -130,7 +139,16 @@ class _EpochStats:
 
     def radii_grad(self) -> torch.Tensor:
         """:math:`(K, 2)` mean |grad| per axis over the views that saw each plane."""
-        return self.grad_sum / self.grad_count.clamp(min=1)[:, None]
+        s = self.grad_sum
+        if self.grad_sides is not None:  # the radii are (x+, x-, y+, y-)
+            g = self.grad_sides
+            s = torch.stack([torch.maximum(g[:, 0], g[:, 1]), torch.maximum(g[:, 2], g[:, 3])], 1)
+        return s / self.grad_count.clamp(min=1)[:, None]
+
+    def select(self, idx: torch.Tensor) -> "_EpochStats":
+        """The same round's sums for the planes ``idx`` (a pruned set's parents), the scalars kept."""
+        return replace(self, seen=self.seen[idx], grad_sum=self.grad_sum[idx], grad_count=self.grad_count[idx],
+                       grad_sides=None if self.grad_sides is None else self.grad_sides[idx])
 
 
 def _rendered_subset(params: list, cam_from_world: torch.Tensor, conf: PlaneOptConfig) -> Optional[torch.Tensor]:
@@ -144,7 +162,7 @@ def _rendered_subset(params: list, cam_from_world: torch.Tensor, conf: PlaneOptC
         c = params[0] @ R.T + t
         keep = c[:, 2] >= conf.min_center_depth
         if conf.cull_back_faces:
-            n = quat_to_rotmat(params[1])[..., 2] @ R.T
+            n = quat_to_rotmat(composed(params[1]))[..., 2] @ R.T
             keep &= (n * c).sum(-1) < 0  # the normal points back towards the camera centre
         return keep.nonzero().squeeze(1)
 
@@ -153,6 +171,7 @@ def render_target(params: list, tgt: ViewTarget, lam: float, conf: PlaneOptConfi
     """The differentiable render of the planes ``params`` = [center, quat, radii] in ``tgt``'s training camera, with
     the culling of ``conf``; ``hits`` index ``params`` (culled planes are never hit)."""
     idx = _rendered_subset(params, tgt.cam_from_world, conf)
+    params = [params[0], composed(params[1]), params[2]]
     p = params if idx is None else [t.index_select(0, idx) for t in params]
     out = rasterize_planes(p[0], p[1], p[2], tgt.cam_from_world, tgt.camera.params, tgt.camera.width,
                            tgt.camera.height, lam, conf.max_hits, conf.tile_size, near=conf.near)
@@ -174,7 +193,7 @@ def _train_view(params, opt, tgt: ViewTarget, it: int, sched: Schedule, extra_lo
     sched.set_lr(opt, it)
     out = render_target(params, tgt, sched.lam(it), conf)
     pl = plane_loss(out, tgt, conf)
-    extra = None if extra_loss is None else extra_loss(tgt.view, Planes(params[0], params[1], params[2]), it, out, tgt)
+    extra = None if extra_loss is None else extra_loss(tgt.view, _planes(params), it, out, tgt)
     total = _total_loss(pl, extra, conf.plane_weight * sched.decay(it))
     vis = out.visible_planes(len(params[0]))
     stats.seen |= vis
@@ -200,7 +219,7 @@ def _restructure(params: list, opt, stats: _EpochStats, it: int, sched: Schedule
         q = torch.quantile(seen_g.float(), torch.tensor([0.5, 0.9, 0.99], device=seen_g.device)).tolist()
         hist.setdefault("radii_grad_q50_q90_q99", []).append([round(x, 4) for x in q])
     do_split = conf.split and n_round >= conf.split_after_rounds and it <= sched.split_stop and it < sched.max_iters
-    current = Planes(*(p.detach() for p in params))
+    current = _planes(params, detach=True)
     new, imap = prune_and_split(
         current,
         seen=seen if conf.prune_unseen else None,
@@ -213,7 +232,27 @@ def _restructure(params: list, opt, stats: _EpochStats, it: int, sched: Schedule
     if len(new) == 0:
         logger.warning("pruning would remove every plane; keeping the current set")
         new, imap = prune_and_split(current, min_radius=0.0, split_threshold=None)
-    params_new = _live(new)
+    params_new = _carry_rotation(_live(new), params[1], imap.parent)
+    fresh = imap.child if conf.zero_moments_of_split else None
+    return params_new, _make_optimizer(params_new, conf, old=opt, parent=imap.parent, fresh=fresh), imap
+
+
+def _prune_invisible(params: list, opt, targets, it: int, sched: Schedule, hist: dict):
+    """The reference's visibility check: render every view with the current planes and prune those none renders.
+    Returns (params, optimizer, index map); the index map is None when nothing was pruned."""
+    conf = sched.conf
+    seen = torch.zeros(len(params[0]), dtype=torch.bool, device=params[0].device)
+    with torch.no_grad():
+        for i in range(len(targets)):
+            seen |= render_target(params, targets[i], sched.lam(it), conf).visible_planes(len(params[0]))
+    n_unseen = int((~seen).sum())
+    hist.setdefault("invisible_pruned", []).append([it, n_unseen])
+    if n_unseen == 0 or n_unseen == len(seen):
+        if n_unseen:
+            logger.warning("no view renders any plane; keeping the current set")
+        return params, opt, None
+    new, imap = prune_and_split(_planes(params, detach=True), seen=seen, min_radius=0.0, split_threshold=None)
+    params_new = _carry_rotation(_live(new), params[1], imap.parent)
     return params_new, _make_optimizer(params_new, conf, old=opt, parent=imap.parent), imap
 
 
@@ -230,15 +269,35 @@ def _record_epoch(hist: dict, stats: _EpochStats, imap, n_planes: int, lam: floa
                  hist["depth"][-1], hist["normal"][-1], n_planes, imap.n_pruned, imap.n_split)
 
 
-def _clean_start(planes: Planes, dev, on_restructure) -> list:
-    """Drop degenerate planes before optimizing; the live parameters [center, quat, radii]."""
+def _planes(params: list, detach: bool = False) -> Planes:
+    """The :class:`Planes` of the live parameters (the rotation composed where it is two quaternions)."""
+    c, q, r = params[0], composed(params[1]), params[2]
+    return Planes(c.detach(), q.detach(), r.detach()) if detach else Planes(c, q, r)
+
+
+def _carry_rotation(params_new: list, rot: torch.Tensor, parent: torch.Tensor) -> list:
+    """``params_new`` (from :func:`_live` of a restructured set) with the two-quaternion rotation of each plane's
+    parent, where ``rot`` is one (a split's children share their parent's rotation)."""
+    if rot.shape[-1] == WIDTH:
+        params_new[1] = rot.detach()[parent].clone(memory_format=torch.contiguous_format).requires_grad_(True)
+    return params_new
+
+
+def _clean_start(planes: Planes, dev, on_restructure, rotation: str = "quaternion") -> list:
+    """Drop degenerate planes before optimizing; the live parameters [center, rotation, radii]: the rotation a
+    quaternion, or with ``rotation`` "normal-inplane" the reference's two (lipmap/planes/rotation.py)."""
     planes = planes.to(device=dev, dtype=torch.float32)
     planes, imap = prune_and_split(planes, min_radius=0.0, split_threshold=None)
     if imap.n_pruned:
         logger.warning("dropped %d degenerate planes (non-finite or non-positive radii) before optimizing", imap.n_pruned)
     if on_restructure:
         on_restructure(imap)
-    return _live(planes)
+    params = _live(planes)
+    if rotation == "normal-inplane":
+        params[1] = split(params[1].detach()).contiguous().requires_grad_(True)
+    elif rotation != "quaternion":
+        raise InputError(f"rotation must be 'quaternion' or 'normal-inplane', got {rotation!r}")
+    return params
 
 
 ExtraLoss = Callable[[object, Planes, int, RenderOutput, ViewTarget], Optional[torch.Tensor]]
@@ -277,7 +336,7 @@ def optimize_planes(
         targets = TargetStore(targets, conf, device=dev)
     if not targets:
         raise InputError("no view with depth and pose to optimize planes against")
-    params = _clean_start(planes, dev, on_restructure)
+    params = _clean_start(planes, dev, on_restructure, conf.rotation)
     opt = _make_optimizer(params, conf)
     sched = Schedule.of(conf, len(targets))
     fine, fine_from = _fine_targets(targets, conf, sched, dev)
@@ -289,8 +348,24 @@ def optimize_planes(
     visited = np.zeros(len(targets), dtype=bool)  # the views this round has trained on
     t0 = time.time()
     stats = _EpochStats.zeros(len(params[0]), dev)
+    if conf.view_order not in ("shuffle", "sequential"):
+        raise InputError(f"view_order must be 'shuffle' or 'sequential', got {conf.view_order!r}")
+    check_every = conf.prune_unseen_every
+
+    def prune_invisible(at):
+        nonlocal params, opt, stats
+        params, opt, imap = _prune_invisible(params, opt, fine if fine is not None and it >= fine_from else targets, at,
+                                             sched, hist)
+        if imap is not None:
+            stats = stats.select(imap.parent)
+            if on_restructure:
+                on_restructure(imap)
+
+    if check_every > 0:
+        prune_invisible(0)
     for epoch in range(sched.n_epochs):
-        for vi in rng.permutation(len(targets))[: sched.max_iters - it]:
+        order = rng.permutation(len(targets)) if conf.view_order == "shuffle" else np.arange(len(targets))
+        for vi in order[: sched.max_iters - it]:
             if it == fine_from and isinstance(targets, TargetStore):
                 targets.release()  # the coarse targets are not used again: up to cache_views of them held
             _train_view(params, opt, (fine if it >= fine_from else targets)[vi], it, sched, extra_loss, stats)
@@ -298,12 +373,14 @@ def optimize_planes(
             visited[vi] = True
             if bar is not None:
                 bar.update(1)
+            if check_every > 0 and it - 1 > 0 and (it - 1) % check_every == 0:
+                prune_invisible(it - 1)  # the reference checks after the step of its iteration it - 1
             if it % every and it < sched.max_iters:
                 continue
             # "seen by no view" only where the round trained on every view (not so in a last round cut short by
             # the budget, or a round that is not a whole number of epochs and straddles two)
-            params, opt, imap = _restructure(params, opt, stats, it, sched, hist, stats.seen if visited.all() else None,
-                                             n_round)
+            seen = stats.seen if visited.all() and check_every <= 0 else None
+            params, opt, imap = _restructure(params, opt, stats, it, sched, hist, seen, n_round)
             visited[:] = False
             if on_restructure:
                 on_restructure(imap)
@@ -315,7 +392,7 @@ def optimize_planes(
             stats = _EpochStats.zeros(len(params[0]), dev)
     if bar is not None:
         bar.close()
-    return Planes(*(p.detach() for p in params)), hist
+    return _planes(params, detach=True), hist
 
 
 def _fine_targets(targets, conf: PlaneOptConfig, sched: Schedule, dev):
