@@ -167,6 +167,10 @@ class LineQuery:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         proj, _ = geo.project_segments(self.lines[vis], T, camera)
         qs = geo.as_segments2d(q)
+        # Two cheap tests over all pairs (a query has ~300 lines, a view ~1,000-3,000 map lines), as float32 matrix
+        # products: the angle, and the query line's midpoint within the gate of the projected infinite line (its unit
+        # normal), which both endpoints being within it implies (one product instead of one per endpoint). About 1 %
+        # of the pairs are left; they get the exact tests in float64.
         dq = qs[:, 1] - qs[:, 0]
         dp = proj[:, 1] - proj[:, 0]
         dq = dq / np.maximum(np.linalg.norm(dq, axis=1, keepdims=True), 1e-9)
@@ -175,9 +179,12 @@ class LineQuery:
         nrm = np.stack([-dp[:, 1], dp[:, 0]], 1)  # (P, 2) unit normals of the projected lines
         off = (nrm * proj[:, 0]).sum(1)
         cos_gate = np.cos(np.radians(conf.max_angle_deg))
-        # a query has ~300 lines and a view ~1,000-3,000 map lines: only the pairs within the angle gate (~3 % of
-        # them at 3 deg) get the exact tests
-        qi, pj = angle_gate_pairs(dq, dp, conf.max_angle_deg)
+        with np.errstate(invalid="ignore"):  # NaN projections (behind the camera) pass no test
+            # gates a hair wider than the float64 ones below, which decide
+            mid32 = (0.5 * (qs[:, 0] + qs[:, 1])).astype(np.float32)
+            m = np.abs(mid32 @ nrm.T.astype(np.float32) - off.astype(np.float32)) <= np.float32(conf.max_dist_px + 1e-3)
+            m &= np.abs(dq.astype(np.float32) @ dp.T.astype(np.float32)) >= np.float32(cos_gate - 1e-5)
+        qi, pj = np.divmod(np.flatnonzero(m), m.shape[1])  # np.nonzero's (qi, pj) order, 10x faster on (Q, P)
         cos = np.abs((dq[qi] * dp[pj]).sum(1))
         d0 = np.abs((qs[qi, 0] * nrm[pj]).sum(1) - off[pj])
         d1 = np.abs((qs[qi, 1] * nrm[pj]).sum(1) - off[pj])
@@ -236,38 +243,6 @@ class LineQuery:
             "angle": ang[ok],
             "dist": dist[ok],
         }
-
-
-def angle_gate_pairs(dq: np.ndarray, dp: np.ndarray, max_angle_deg: float) -> tuple:
-    """Every pair (i, j) of unit directions ``dq`` (Q, 2) and ``dp`` (P, 2) whose undirected lines lie within
-    ``max_angle_deg`` (and a hair more), sorted by i then j; non-finite directions pair with none.
-
-    The lines' angles in [0, pi) are sorted once and each query line takes the window around its own, so the cost
-    grows with the pairs kept, not with Q * P. A superset of the pairs the exact test keeps: the caller tests them.
-
-    Returns:
-        (qi, pj) :math:`(K,)` int64 each.
-    """
-    w = np.radians(max_angle_deg) + 1e-6
-    okq, okp = np.isfinite(dq).all(1), np.isfinite(dp).all(1)
-    if w >= np.pi / 2:  # every pair is within the gate
-        qi, pj = np.divmod(np.arange(int(okq.sum()) * int(okp.sum())), int(okp.sum()) or 1)
-        return np.flatnonzero(okq)[qi], np.flatnonzero(okp)[pj]
-    aq = np.arctan2(dq[:, 1], dq[:, 0]) % np.pi
-    ap = np.arctan2(dp[:, 1], dp[:, 0]) % np.pi
-    jp = np.flatnonzero(okp)
-    jp = jp[np.argsort(ap[jp], kind="stable")]
-    # each angle also at -pi and +pi, so a window across 0 or pi is one run; 2w < pi keeps the copies apart
-    ext = np.concatenate([ap[jp] - np.pi, ap[jp], ap[jp] + np.pi])
-    ids = np.tile(jp, 3)
-    iq = np.flatnonzero(okq)
-    lo = np.searchsorted(ext, aq[iq] - w, "left")
-    n = np.searchsorted(ext, aq[iq] + w, "right") - lo
-    qi = np.repeat(iq, n)
-    pos = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n) + np.repeat(lo, n)
-    pj = ids[pos]
-    order = np.lexsort((pj, qi))
-    return qi[order].astype(np.int64), pj[order].astype(np.int64)
 
 
 def _same_line_3d(a: np.ndarray, b: np.ndarray, tol: float, max_angle_deg: float = 5.0) -> np.ndarray:

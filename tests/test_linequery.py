@@ -6,7 +6,7 @@ from lipmap import geometry as geo
 from lipmap.mapping.assign import corner_edges
 from lipmap.poses import make_T
 from lipmap.testing import SMALL_CAMERA, rect, wall_scene
-from localization.linequery import LineQuery, LineQueryConfig, angle_gate_pairs
+from localization.linequery import LineQuery, LineQueryConfig
 
 
 def _map():
@@ -174,23 +174,3 @@ def test_projection_candidates_equal_a_float64_reference():
         mid = geo.perpendicular_distance(np.repeat(qs.mean(-2, keepdims=True), 2, -2), proj[None], "max")
     assert ((ang <= np.radians(3)) & (mid <= 8) & (dist > 8) & (ov >= 0.3)).sum() > 0
     assert len(ref) > 50 and got == {(int(i), int(j)) for i, j in ref}
-
-
-@pytest.mark.parametrize("gate", [0.5, 3.0, 30.0, 89.9999, 90.0, 120.0])
-def test_angle_gate_pairs_are_every_pair_within_the_gate(gate):
-    rng = np.random.default_rng(3)
-    a = np.r_[rng.uniform(0, 2 * np.pi, 300), 0.0, np.pi - 1e-4, np.pi / 2, 1e-4]  # windows across 0 and pi
-    b = np.r_[rng.uniform(0, 2 * np.pi, 700), np.pi, 2e-4, -1e-4]
-    dq, dp = np.stack([np.cos(a), np.sin(a)], 1), np.stack([np.cos(b), np.sin(b)], 1)
-    dq[5] = np.nan  # a direction that is not finite pairs with none
-    dp[7] = np.nan
-    qi, pj = angle_gate_pairs(dq, dp, gate)
-    with np.errstate(invalid="ignore"):
-        cos = np.abs(dq @ dp.T)
-    want_q, want_p = np.nonzero(cos >= np.cos(np.radians(gate)) - 1e-12)
-    got = set(zip(qi.tolist(), pj.tolist()))
-    assert set(zip(want_q.tolist(), want_p.tolist())) <= got  # every pair within the gate
-    # and only a hair more, sorted as np.nonzero sorts
-    ang = np.degrees(np.arccos(np.clip(cos[qi, pj], 0, 1)))
-    assert np.all(ang <= gate + 1e-3) and 5 not in qi and 7 not in pj
-    assert np.all(np.diff(qi * len(dp) + pj) > 0)
