@@ -85,12 +85,13 @@ SCENES = {"random": lambda: random_planes(60), "occlusion": occlusion_scene, "co
           "near-plane": near_plane_scene, "edge-on": edge_on_scene}
 
 
-def render_both(planes, lam, max_hits=5, tile_size=8, T=None):
+def render_both(planes, lam, max_hits=5, tile_size=8, T=None, hit_rule="nearest"):
     T = torch.eye(4) if T is None else T
     out, params = {}, {}
     for backend in ("warp", "torch"):
         P = [t.clone().requires_grad_() for t in planes.tensors()]
-        out[backend] = rasterize_planes(*P, T, INTR, W, H, lam, max_hits, tile_size, backend=backend)
+        out[backend] = rasterize_planes(*P, T, INTR, W, H, lam, max_hits, tile_size, backend=backend,
+                                        hit_rule=hit_rule)
         params[backend] = P
     return out, params
 
@@ -125,6 +126,24 @@ class TestFusedAgainstTorchTwin:
     def test_values_gradients_and_hits(self, scene, lam):
         out, params = render_both(SCENES[scene](), lam)
         assert out["torch"].n_pairs > 0
+        assert_same_render(out["warp"], out["torch"], grads(out["warp"], params["warp"]),
+                           grads(out["torch"], params["torch"]))
+
+    @pytest.mark.parametrize("lam", LAMS)
+    @pytest.mark.parametrize("scene", sorted(SCENES))
+    def test_the_reference_hit_rule(self, scene, lam):
+        """``hit_rule="reference"``: the same hits as the torch twin's walk, and other hits than the nearest ones."""
+        out, params = render_both(SCENES[scene](), lam, hit_rule="reference")
+        assert out["warp"].hit_rule == "reference"
+        assert_same_render(out["warp"], out["torch"], grads(out["warp"], params["warp"]),
+                           grads(out["torch"], params["torch"]))
+
+    @pytest.mark.parametrize("lam", [36.8, 1500.0])
+    def test_the_reference_hit_rule_with_thirty_hits(self, lam):
+        planes = random_planes(150, seed=4, spread=0.6)
+        out, params = render_both(planes, lam, max_hits=30, hit_rule="reference")
+        nearest = rasterize_planes(*planes.tensors(), torch.eye(4), INTR, W, H, lam, 30, backend="warp")
+        assert not torch.equal(nearest.hits, out["warp"].hits)  # the rule matters on this scene
         assert_same_render(out["warp"], out["torch"], grads(out["warp"], params["warp"]),
                            grads(out["torch"], params["torch"]))
 

@@ -332,6 +332,46 @@ def test_first_hit_in_render_agrees_with_casting_every_ray():
         assert torch.equal(got, want), (max_hits, int((got != want).sum()))
 
 
+def _crossing_scene():
+    """A slanted plane (0, centre 2 m, z = 2 + x tan 50deg) crossing a wall (1, centre 2.1 m): right of x = 0.084 m the
+    slanted plane lies behind the wall."""
+    a = np.radians(50)
+    return Planes.from_normals([[0, 0, 2.0], [0, 0, 2.1]], [[np.sin(a), 0, -np.cos(a)], [0, 0, -1.0]], [0.5, 0.5])
+
+
+def test_paper_renders_with_the_reference_hit_rule():
+    """The reference's renderer walks a tile's planes by their centres' depth and skips a hit nearer than the last
+    one it took: where the slanted plane (nearer centre) lies behind the wall, `paper` renders the slanted plane and
+    `fast` the wall."""
+    planes = _crossing_scene()
+    tgt = ViewTarget(None, CAM, torch.eye(4), torch.zeros(80, 100), torch.zeros(80, 100, 3),
+                     torch.zeros(80, 100, dtype=torch.bool), torch.zeros(80, 100, dtype=torch.bool))
+    first = {}
+    for name in ("fast", "paper"):
+        conf = replace(PlaneOptConfig.preset(name), max_hits=5)
+        out = render_target(planes.tensors(), tgt, 1500.0, conf)
+        assert out.hit_rule == conf.hit_rule
+        first[name] = int(out.hits[40, 60, 0])  # its ray meets the wall at 2.1 m, the slanted plane at 2.29 m
+    assert (PlaneOptConfig.preset("paper").hit_rule, PlaneOptConfig.preset("fast").hit_rule) == ("reference", "nearest")
+    assert first == {"fast": 1, "paper": 0}
+
+
+def test_the_line_term_casts_every_ray_under_the_reference_hit_rule():
+    """A reference-rule render's list can leave out the first rectangle a ray meets (the wall, above): the line
+    term's first hit then comes from every plane, as the reference's ``ray_plane_intersect`` does."""
+    planes = _crossing_scene()
+    v = View("v", CAM, np.eye(4), color_path=None)
+    tgt = ViewTarget(v, CAM, torch.eye(4), torch.zeros(80, 100), torch.zeros(80, 100, 3),
+                     torch.zeros(80, 100, dtype=torch.bool), torch.zeros(80, 100, dtype=torch.bool))
+    line = np.array([[60.5, 30.0, 60.5, 50.0]])
+    out = rasterize_planes(planes.center, planes.quat, planes.radii, torch.eye(4), CAM.params, 100, 80, 1500.0,
+                           hit_rule="reference")
+    assert int(out.hits[40, 60, 0]) == 0 and int(out.hits[40, 60, 1]) == -1  # the wall is not in the list
+    sup = LineSupervision({"v": line}, weight=1.0, max_assign_frac=0.0, pixels_per_line=0, hard_first_hit=True)
+    sup(v, planes, 0, out, tgt)
+    assert set(sup.last["planes"].tolist()) == {1}
+
+
 def test_culled_planes_are_not_rendered():
     """The reference's renderer skips planes whose normal faces away from the camera and planes whose centre is
     nearer than 0.2 m; hits index the whole plane set."""
@@ -384,7 +424,7 @@ def test_paper_preset_follows_the_reference_code():
     planes = PlaneOptConfig.preset(conf.planes)
     assert (planes.split_grad_reduce, planes.depth_loss_on_rendered, planes.reset_moments_on_recenter) == ("max_of_means", True, True)
     assert (planes.zero_moments_of_split, planes.view_order, planes.prune_unseen_every) == (True, "sequential", 1000)
-    assert planes.normal_loss_on_invalid_targets and planes.max_depth == 10.0
+    assert planes.normal_loss_on_invalid_targets and planes.max_depth == 10.0 and planes.hit_rule == "reference"
     # the reference's fusion: 1 cm voxels, 2 cm truncation, every view, depth to 10 m, 10,000 planes
     i = planes.init
     assert (i.voxel_size, i.voxel_size * i.trunc_voxels, i.max_frames, i.max_depth, i.n_planes) == (0.01, 0.02, 0, 10.0, 10000)

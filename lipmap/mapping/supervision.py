@@ -189,7 +189,7 @@ class LineSupervision:
             return render.hits.reshape(-1, render.hits.shape[-1])[flat, 0].to(corners.device)
         d = g.dirs.to(corners.dtype)
         o = g.origin.to(corners.dtype).expand(len(d), 3).contiguous()
-        if render is None:
+        if render is None or render.hit_rule != "nearest":  # only the nearest-hit rule's lists hold the first hit
             return first_hit(corners, o, d)
         cand = render.hits.reshape(-1, render.hits.shape[-1])[flat].to(corners.device)
         # a list is whole unless it is full or the transmittance behind it ran out

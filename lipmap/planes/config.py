@@ -8,7 +8,7 @@ import torch
 from ..presets import resolve
 from .init import PlaneInitConfig
 from .primitives import MAX_HITS, NEAR
-from .render import TILE_SIZE, check_near
+from .render import TILE_SIZE, check_hit_rule, check_near
 
 
 @dataclass
@@ -95,6 +95,9 @@ class PlaneOptConfig:
     cull_back_faces: bool = False
     min_center_depth: float = 0.0  # m
     near: float = NEAR  # m, > 0: the renderer's near plane (reference: 0.1); nearer intersections are not rendered
+    # which hits a pixel composites: "nearest" (its M nearest) or "reference" (its renderer's: the tile's planes by
+    # their centres' depth, a hit nearer than the last one taken skipped; lipmap.planes.render.select_hits)
+    hit_rule: str = "nearest"
     max_planes: int = 20000  # splitting never grows the set beyond this
     seed: int = 0
     device: str = "auto"  # "auto" = CUDA when available
@@ -110,6 +113,7 @@ class PlaneOptConfig:
 
     def __post_init__(self):
         check_near(self.near)  # refused when set, not thousands of iterations later in the first render
+        check_hit_rule(self.hit_rule)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -158,7 +162,7 @@ def _paper() -> PlaneOptConfig:
     # whatever the views, lr 1e-3 with its Adam (betas 0.9 / 0.99, eps 1e-15, centre and radii moments zeroed after
     # each step), 1 cm voxels, its depth and normal losses (unit normals in the world frame, over the rendered
     # pixels), its split criterion from the second round, and its renderer's 30 contributors per pixel, back-face
-    # and near-centre culling, its near plane at 0.1 m; its views in sequence, its split statistic (the larger side
+    # and near-centre culling, its near plane at 0.1 m, its hit rule; its views in sequence, its split statistic (the larger side
     # of the radii's mean |grad|), split planes' moments from zero, its visibility pruning (iteration 0 and every
     # 1,000), its fusion (_paper_init). Plane loss 2 * depth + 5 * normal as the reference codes it
     # (weight_mono_depth, weight_mono_normal in its confs); the paper writes depth 5, normal 1 in Sec. 3.3 and normal 5,
@@ -169,7 +173,7 @@ def _paper() -> PlaneOptConfig:
                           split_after_rounds=1, cull_back_faces=True, min_center_depth=0.2, near=0.1, max_hits=30,
                           split_grad_reduce="max_of_means", zero_moments_of_split=True,
                           normal_loss_on_invalid_targets=True, view_order="sequential", prune_unseen_every=1000,
-                          rotation="normal-inplane", max_depth=10.0, init=_paper_init())
+                          rotation="normal-inplane", max_depth=10.0, hit_rule="reference", init=_paper_init())
 
 
 def _paper_init() -> PlaneInitConfig:

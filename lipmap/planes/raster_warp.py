@@ -9,7 +9,9 @@ The shape of gsplat's rasterizer and of the reference's ``renderCUDA``:
 3. one program per pixel (``_raster_fwd``) walks its tile's planes, keeps the M nearest hits sorted
    by (depth, plane index) in registers, stops once no later plane can reach the pixel (its nearest
    depth lies behind the M-th hit or behind the point where the transmittance fell below 1e-4),
-   and composites them front to back;
+   and composites them front to back; under the reference's hit rule (``hit_rule="reference"``) the
+   tile's planes are sorted by their centres' depth instead, and the program takes each hit that lies no
+   nearer than the last one it took, as ``renderCUDA`` does;
 4. one reverse program per pixel (``_raster_bwd``) accumulates the per-plane gradients.
 
 Step 1 starts from the world-frame parameters: ``_setup_fwd`` moves each plane into the camera
@@ -360,7 +362,7 @@ def _define(wp):
         c: wp.array(dtype=wp.vec3), ax: wp.array(dtype=wp.vec3), ay: wp.array(dtype=wp.vec3),
         n: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec4), nc: wp.array(dtype=float),
         u_tab: wp.array(dtype=float), v_tab: wp.array(dtype=float), width: int, height: int, ntx: int, tile: int,
-        lam: float, max_hits: int, near: float, chunk: int, n_chunks: int,
+        lam: float, max_hits: int, near: float, rule: int, chunk: int, n_chunks: int,
         hits: wp.array2d(dtype=wp.int64), depth: wp.array(dtype=float), alpha: wp.array(dtype=float),
         normal: wp.array(dtype=wp.vec3), seen: wp.array(dtype=wp.int32),
     ):
@@ -380,8 +382,27 @@ def _define(wp):
         lk = vecMi()
         m = int(0)
         cut = inf
+        last, tr = float(0.0), float(1.0)
         for idx in range(start[ti], start[ti + 1]):
             k = cand[idx]
+            if rule == 1:  # the reference's walk (planes by centre depth): a hit nearer than the last one is skipped
+                if m >= max_hits or tr < teps:
+                    break
+                t, den, q, px, py, zx, zy, z = _pair_geo(c[k], ax[k], ay[k], n[k], r[k], nc[k], u, v, lam)
+                if not (t > near and t < inf) or z < z_reject or t < last:
+                    continue
+                w = float(1.0)
+                if not (z >= 0.0):
+                    w = 2.0 * _sigmoid(z)
+                if not (w > weps):
+                    continue
+                lt[m] = t
+                lw[m] = w
+                lk[m] = k
+                m += 1
+                last = t
+                tr = tr * (1.0 - w)
+                continue
             zk = zmin[k]
             if zk > cut:
                 # the tile's planes are sorted by quantized nearest depth: none after this one can be nearer
@@ -595,7 +616,7 @@ class _Raster(torch.autograd.Function):
     def forward(ctx, center, quat, radii, T, u, v, dims):
         kn = _kernels()
         wp = kn["wp"]
-        width, height, tile, lam, max_hits, near, dilate, intrinsics = dims
+        width, height, tile, lam, max_hits, near, dilate, intrinsics, rule = dims
         dev, K, P = center.device, len(center), width * height
         wdev, stream = _device(center), _stream(center)
         ntx, nty = -(-width // tile), -(-height // tile)
@@ -617,7 +638,12 @@ class _Raster(torch.autograd.Function):
             wp.launch(kn["emit"], dim=K, device=wdev, stream=stream, inputs=planes + [
                 dilate, width, height, tile, _view(wp, u), _view(wp, v), near, _view(wp, rect, wp.vec4i), _view(wp, count),
                 _view(wp, offset), _view(wp, zmin), ntx, _view(wp, keys), _view(wp, pair_plane)])
-        keys, order = torch.sort(keys)
+        if rule == "reference":  # by tile, then the centres' depth, then plane index (pairs come in plane order)
+            order = torch.sort(c[:, 2][pair_plane.long()], stable=True).indices
+            order = order[torch.sort(keys[order] >> 32, stable=True).indices]
+            keys = keys[order]
+        else:
+            keys, order = torch.sort(keys)
         cand = pair_plane[order]
         tiles = torch.arange(ntx * nty + 1, device=dev, dtype=torch.int64) << 32
         start = torch.searchsorted(keys, tiles).to(torch.int32)
@@ -629,7 +655,7 @@ class _Raster(torch.autograd.Function):
         seen = torch.zeros(K, dtype=torch.int32, device=dev)
         n_chunks = _n_chunks(center)
         common = [_view(wp, start), _view(wp, cand), _view(wp, zmin)] + planes + [
-            _view(wp, u), _view(wp, v), width, height, ntx, tile, lam, max_hits, near]
+            _view(wp, u), _view(wp, v), width, height, ntx, tile, lam, max_hits, near, int(rule == "reference")]
         outs = [_view(wp, hits), _view(wp, depth), _view(wp, alpha), _view(wp, normal, v3), _view(wp, seen)]
         tiles_per_chunk = -(-(len(start) - 1) // n_chunks)
         _launch_chunks(wp, kn["fwd"], tiles_per_chunk * tile * tile, wdev, n_chunks,
@@ -665,18 +691,19 @@ class _Raster(torch.autograd.Function):
 
 
 def rasterize(center, quat, radii, cam_from_world, u, v, intrinsics, width: int, height: int, lam: float,
-              max_hits: int, tile_size: int, dilate: float, near: float = NEAR):
+              max_hits: int, tile_size: int, dilate: float, near: float = NEAR, hit_rule: str = "nearest"):
     """Render world-frame planes (centre (K,3), quaternion (K,4), radii (K,4)) into the camera ``cam_from_world``
     (4, 4) with the Warp kernels.
 
     ``u`` (W,), ``v`` (H,): the pixel rays (:func:`lipmap.planes.render._pixel_axes`); ``dilate``: how far beyond
-    its rectangle a plane is binned (its weight-1e-4 footprint and a margin); ``near``: the near plane's z (m).
-    Returns depth (H, W), normal (H, W, 3), alpha (H, W), hits (H W, M) int64, nearest first (depth ties: lower
-    index first), -1 padded, and the planes some pixel composites (K,) bool; the first three are differentiable
+    its rectangle a plane is binned (its weight-1e-4 footprint and a margin); ``near``: the near plane's z (m);
+    ``hit_rule``: ``"nearest"`` or ``"reference"`` (:func:`lipmap.planes.render.select_hits`).
+    Returns depth (H, W), normal (H, W, 3), alpha (H, W), hits (H W, M) int64 in compositing order (nearest first
+    under "nearest", depth ties: lower index first), -1 padded, and the planes some pixel composites (K,) bool; the first three are differentiable
     w.r.t. centre, quaternion and radii.
     """
     T = cam_from_world.detach().reshape(16).contiguous()
-    dims = (width, height, tile_size, float(lam), max_hits, float(near), float(dilate), tuple(intrinsics))
+    dims = (width, height, tile_size, float(lam), max_hits, float(near), float(dilate), tuple(intrinsics), hit_rule)
     depth, normal, alpha, hits, seen = _Raster.apply(center.contiguous(), quat.contiguous(), radii.contiguous(), T,
                                                      u, v, dims)
     return (depth.reshape(height, width), normal.reshape(height, width, 3), alpha.reshape(height, width), hits,

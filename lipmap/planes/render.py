@@ -80,9 +80,11 @@ class RenderOutput:
         depth: :math:`(H, W)` z-depth sum_j T_j w_j t_j (not normalised by alpha; 0 where empty).
         normal: :math:`(H, W, 3)` camera-frame normals sum_j T_j w_j n_j (facing the camera).
         alpha: :math:`(H, W)` accumulated weight sum_j T_j w_j in [0, 1].
-        hits: :math:`(H, W, M)` int64 indices of the composited planes, nearest first (depth ties:
-            lower index first), -1 padded (no gradient); ``hits[..., 0]`` is the first plane each
-            pixel's ray meets.
+        hits: :math:`(H, W, M)` int64 indices of the composited planes in compositing order, -1 padded (no
+            gradient). Under the ``"nearest"`` hit rule nearest first (depth ties: lower index first), and
+            ``hits[..., 0]`` is the first plane each pixel's ray meets; under ``"reference"`` a nearer plane can be
+            missing from the list (:func:`select_hits`).
+        hit_rule: the rule that selected ``hits``.
     """
 
     depth: torch.Tensor
@@ -90,6 +92,7 @@ class RenderOutput:
     alpha: torch.Tensor
     hits: torch.Tensor
     visible: Optional[torch.Tensor] = None  # (K,) bool, when the renderer marked the planes it composited
+    hit_rule: str = "nearest"
 
     @property
     def n_pairs(self) -> int:
@@ -345,21 +348,36 @@ def select_hits(
     max_hits: int = MAX_HITS,
     tile_size: int = TILE_SIZE,
     near: float = NEAR,
+    hit_rule: str = "nearest",
 ) -> torch.Tensor:
-    """Which planes each pixel composites (torch backend): :math:`(H W, M)` int64, nearest first, -1 padded.
+    """Which planes each pixel composites (torch backend): :math:`(H W, M)` int64, in compositing order, -1 padded.
 
-    A pixel's candidates are the intersections with t > ``near`` and splat weight > WEIGHT_EPS; it keeps
-    the M nearest (depth ties: lower plane index first) and of those the ones in front of the point
-    where the transmittance falls below TRANSMITTANCE_EPS.
+    A pixel's candidates are the intersections with t > ``near`` and splat weight > WEIGHT_EPS. With
+    ``hit_rule="nearest"`` (this toolkit's, both backends) it keeps the M nearest (depth ties: lower plane index
+    first) and of those the ones in front of the point where the transmittance falls below TRANSMITTANCE_EPS.
+    ``"reference"`` is the reference rasterizer's rule (``renderCUDA``): the tile's planes are walked
+    in order of their centres' depth (ties by plane index), and a hit is taken only when it lies no nearer than the
+    last one taken, until M are taken or the transmittance falls below TRANSMITTANCE_EPS.
     """
     _check_inputs(center, quat, radii, cam_from_world, width, height)
     check_near(near)
+    check_hit_rule(hit_rule)
     intrinsics = tuple(float(v) for v in intrinsics)
     cam = _planes_in_camera(center, quat, radii, cam_from_world.to(device=center.device, dtype=center.dtype))
-    return _select(cam, _plane_table(*cam), intrinsics, width, height, lam, max_hits, tile_size, near=near)
+    return _select(cam, _plane_table(*cam), intrinsics, width, height, lam, max_hits, tile_size, near=near,
+                   hit_rule=hit_rule)
 
 
-def _select(cam, tab, intrinsics, width, height, lam, max_hits, tile_size, tw=None, near=NEAR) -> torch.Tensor:
+HIT_RULES = ("nearest", "reference")
+
+
+def check_hit_rule(hit_rule: str) -> None:
+    if hit_rule not in HIT_RULES:
+        raise InputError(f"unknown hit rule {hit_rule!r}; choose one of {', '.join(HIT_RULES)}")
+
+
+def _select(cam, tab, intrinsics, width, height, lam, max_hits, tile_size, tw=None, near=NEAR,
+            hit_rule="nearest") -> torch.Tensor:
     """:func:`select_hits` on camera-frame planes; fills ``tw`` = (depth, weight) (P, M) of the hits when given."""
     c, ax, ay, n, r = (x.detach() for x in cam)
     dev = c.device
@@ -372,13 +390,15 @@ def _select(cam, tab, intrinsics, width, height, lam, max_hits, tile_size, tw=No
     tile, plane, ntx, nty = _tile_pairs(boxes, vis, width, height, tile_size)
     if len(tile) == 0:
         return hits
-    margin = SPLAT_MARGIN / lam
-    keep = _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, tab, zmin, margin, max_hits, near)
-    tile, plane = tile[keep], plane[keep]
+    if hit_rule == "nearest":  # the occlusion cull is exact for the nearest hits only
+        margin = SPLAT_MARGIN / lam
+        keep = _cull_occluded(tile, plane, ntx, tile_size, width, height, intrinsics, tab, zmin, margin, max_hits,
+                              near)
+        tile, plane = tile[keep], plane[keep]
     rank, size = _group_sizes(tile, ntx * nty, max_hits)
     u, v = _pixel_axes(width, height, intrinsics, c.dtype, dev)
     _select_in_groups(hits, tile, plane, rank, size, len(c), ntx, nty, tile_size, width, height, u, v, tab, lam, tw,
-                      near)
+                      near, hit_rule)
     return hits
 
 
@@ -395,7 +415,7 @@ def _group_sizes(tile, n_tiles: int, max_hits: int):
 
 
 def _select_in_groups(hits, tile, plane, rank, size, K, ntx, nty, tile_size, width, height, u, v, tab, lam, tw=None,
-                      near=NEAR):
+                      near=NEAR, hit_rule="nearest"):
     """Fill ``hits`` (and the depths and weights ``tw``, when given) group by group: the tiles of one padded size
     L share one batched evaluation."""
     dev = hits.device
@@ -413,6 +433,11 @@ def _select_in_groups(hits, tile, plane, rank, size, K, ntx, nty, tile_size, wid
         # padding: the dummy plane K, which never intersects; columns stay in ascending plane order
         cand_all = torch.full((len(tiles_all), L), K, dtype=torch.long, device=dev)
         cand_all[row_of_tile[tile[in_b]], rank[in_b]] = plane[in_b]
+        if hit_rule == "reference":  # each row in order of the centres' depth, ties (and the padding) by index
+            cz = tab[_C][2].clone()
+            cz[-1] = math.inf  # the dummy column
+            order = torch.sort(cz[cand_all], dim=1, stable=True).indices
+            cand_all = torch.gather(cand_all, 1, order)
         chunk = max(1, budget // (ts * ts * L))
         for c0 in range(0, len(tiles_all), chunk):
             tiles_b, cand = tiles_all[c0 : c0 + chunk], cand_all[c0 : c0 + chunk]
@@ -420,7 +445,8 @@ def _select_in_groups(hits, tile, plane, rank, size, K, ntx, nty, tile_size, wid
             row = (torch.div(tiles_b, ntx, rounding_mode="floor") * ts)[:, None] + ly
             inside = (col < width) & (row < height)
             uc, vr = u[col.clamp(max=width - 1)], v[row.clamp(max=height - 1)]
-            sel, ts_, ws_ = _nearest_hits(uc, vr, inside, cand, tab, lam, max_hits, near)
+            pick = _nearest_hits if hit_rule == "nearest" else _reference_hits
+            sel, ts_, ws_ = pick(uc, vr, inside, cand, tab, lam, max_hits, near)
             pix = (row * width + col)[inside]
             hits[pix, : sel.shape[-1]] = sel[inside]
             if tw is not None:
@@ -461,6 +487,34 @@ def _nearest_hits(u, v, inside, cand, tab, lam, max_hits, near=NEAR):
     trans = torch.cumprod(torch.cat([torch.ones_like(wk[..., :1]), 1 - wk[..., :-1]], -1), -1)
     used = found & (trans >= TRANSMITTANCE_EPS)
     return torch.where(used, sel, -1), torch.where(used, tk, 0.0), torch.where(used, wk, 0.0)
+
+
+def _reference_hits(u, v, inside, cand, tab, lam, max_hits, near=NEAR):
+    """:func:`_nearest_hits` under the reference rasterizer's rule: ``cand`` (nb, L) in walking order (the centres'
+    depth); a pixel takes a hit when it lies no nearer than its last one, until it has ``max_hits`` or its
+    transmittance is below TRANSMITTANCE_EPS. Returns (nb, S, k) planes, depths and weights, -1 / 0 padded.
+
+    No loop over the walk: a valid hit is taken exactly when it lies no nearer than every valid hit before it (a
+    skipped one lies nearer than a taken one before it, so the running maximum over the valid hits is the last
+    taken depth); the cap and the transmittance then cut the taken ones to a prefix.
+    """
+    nb, L = cand.shape
+    S, k = u.shape[1], min(max_hits, L)
+    t, w = _pair_terms(_gather(tab, cand[:, None, :]), u[..., None], v[..., None], lam)  # (nb, S, L)
+    ok = _valid(t, w, near) & inside[..., None]
+    tv = torch.where(ok, t, -math.inf)
+    before = torch.cat([torch.full_like(tv[..., :1], -math.inf), torch.cummax(tv, -1).values[..., :-1]], -1)
+    take = ok & (t >= before)
+    wt = torch.where(take, w, 0.0)
+    trans = torch.cumprod(torch.cat([torch.ones_like(wt[..., :1]), 1 - wt[..., :-1]], -1), -1)
+    rank = torch.cumsum(take.long(), -1)
+    take &= (rank <= k) & (trans >= TRANSMITTANCE_EPS)
+    slot = torch.where(take, rank - 1, k)  # column k collects what is not taken, and is dropped
+    out = []
+    for val, pad in ((cand[:, None, :].expand(-1, S, -1), -1), (t, 0.0), (w, 0.0)):
+        o = torch.full((nb, S, k + 1), pad, dtype=val.dtype, device=t.device)
+        out.append(o.scatter_(2, slot, torch.where(take, val, pad))[..., :k])
+    return tuple(out)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -623,6 +677,7 @@ def rasterize_planes(
     tile_size: int = TILE_SIZE,
     backend: str | None = None,
     near: float = NEAR,
+    hit_rule: str = "nearest",
 ) -> RenderOutput:
     """Render planes into one pinhole camera; differentiable w.r.t. center, quat and radii.
 
@@ -637,6 +692,7 @@ def rasterize_planes(
         backend: ``"auto"``, ``"torch"`` or ``"warp"`` (see the module docstring); None: :data:`DEFAULT_BACKEND`.
         near: the near plane's z-depth in metres, > 0: intersections nearer the camera are not rendered (default
             :data:`~lipmap.planes.primitives.NEAR`, 1 cm; the reference code's is 0.1 m).
+        hit_rule: ``"nearest"`` or ``"reference"`` (the reference rasterizer's; see :func:`select_hits`).
 
     Returns:
         :class:`RenderOutput` (depth, normal, alpha, hits).
@@ -648,6 +704,7 @@ def rasterize_planes(
     if max_hits < 1:
         raise InputError(f"max_hits must be at least 1, got {max_hits}")
     check_near(near)
+    check_hit_rule(hit_rule)
     intrinsics = tuple(float(v) for v in intrinsics)
     which = resolve_backend(backend, center.device, center.dtype, max_hits) if len(center) else "torch"
     if which == "warp" and cam_from_world.requires_grad:
@@ -660,15 +717,15 @@ def rasterize_planes(
         u, v = _pixel_axes(width, height, intrinsics, center.dtype, center.device)
         depth, normal, alpha, hits, seen = raster_warp.rasterize(
             center, quat, radii, cam_from_world, u, v, intrinsics, width, height, lam, max_hits, tile_size,
-            BIN_SLACK * SPLAT_MARGIN / lam, near)
-        return RenderOutput(depth, normal, alpha, hits.reshape(height, width, max_hits), seen)
+            BIN_SLACK * SPLAT_MARGIN / lam, near, hit_rule)
+        return RenderOutput(depth, normal, alpha, hits.reshape(height, width, max_hits), seen, hit_rule)
     cam = _planes_in_camera(center, quat, radii, cam_from_world)
     tab = _plane_table(*cam)
     P = width * height
     t_w = [torch.zeros(P, max_hits, dtype=center.dtype, device=center.device) for _ in range(2)]
-    hits = _select(cam, tab, intrinsics, width, height, lam, max_hits, tile_size, t_w, near)
+    hits = _select(cam, tab, intrinsics, width, height, lam, max_hits, tile_size, t_w, near, hit_rule)
     depth, normal, alpha, hits = _composite(cam, hits, intrinsics, width, height, lam, tab, t_w)
-    return RenderOutput(depth, normal, alpha, hits.reshape(height, width, max_hits))
+    return RenderOutput(depth, normal, alpha, hits.reshape(height, width, max_hits), hit_rule=hit_rule)
 
 
 def render_planes(
@@ -681,12 +738,13 @@ def render_planes(
     tile_size: int = TILE_SIZE,
     backend: str | None = None,
     near: float = NEAR,
+    hit_rule: str = "nearest",
 ) -> RenderOutput:
     """Render ``planes`` (:class:`Planes`) from a :class:`~lipmap.scene.Camera` at ``1 / downscale`` resolution."""
     cam = camera if downscale == 1 else camera.scaled(1.0 / downscale)
     return rasterize_planes(
         planes.center, planes.quat, planes.radii, cam_from_world, cam.params, cam.width, cam.height, lam, max_hits,
-        tile_size, backend, near,
+        tile_size, backend, near, hit_rule,
     )
 
 

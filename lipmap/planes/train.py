@@ -174,14 +174,15 @@ def render_target(params: list, tgt: ViewTarget, lam: float, conf: PlaneOptConfi
     params = [params[0], composed(params[1]), params[2]]
     p = params if idx is None else [t.index_select(0, idx) for t in params]
     out = rasterize_planes(p[0], p[1], p[2], tgt.cam_from_world, tgt.camera.params, tgt.camera.width,
-                           tgt.camera.height, lam, conf.max_hits, conf.tile_size, near=conf.near)
+                           tgt.camera.height, lam, conf.max_hits, conf.tile_size, near=conf.near,
+                           hit_rule=conf.hit_rule)
     if idx is not None:  # subset indices -> indices of params; -1 stays -1 (the appended last entry)
         vis = None
         if out.visible is not None:
             vis = torch.zeros(len(params[0]), dtype=torch.bool, device=idx.device).index_put((idx,), out.visible)
         idx = torch.cat([idx, idx.new_full((1,), -1)])
         out = RenderOutput(out.depth, out.normal, out.alpha, idx[torch.where(out.hits >= 0, out.hits, len(idx) - 1)],
-                           vis)
+                           vis, out.hit_rule)
     return out
 
 
