@@ -63,7 +63,7 @@ def _render(planes, tgt, lam, conf, rule):
                            hit_rule=rule)
     pl = plane_loss(out, tgt, conf)
     first = out.hits[..., 0] if idx is None else torch.where(out.hits[..., 0] >= 0, idx[out.hits[..., 0].clamp(min=0)], -1)
-    return out, first, float(pl[0]) if pl is not None else float("nan")
+    return out, first, float(pl[0].detach()) if pl is not None else float("nan")
 
 
 def compare(planes, conf, targets, view_ids, lam) -> dict:
