@@ -139,11 +139,11 @@ class TestAgreementWithTwin:
 
     def test_chunked_selection(self, monkeypatch):
         """A tiny evaluation budget (many chunks per tile group) gives the same hits."""
-        import lipmap.planes.render as R
+        import lipmap.planes.select as S
 
         planes = random_planes(60)
         a = rasterize_planes(*planes.tensors(), torch.eye(4, dtype=torch.float64), INTR, W, H, 36.8)
-        monkeypatch.setattr(R, "_EVAL_BUDGET_CPU", 500)
+        monkeypatch.setattr(S, "_EVAL_BUDGET_CPU", 500)
         b = rasterize_planes(*planes.tensors(), torch.eye(4, dtype=torch.float64), INTR, W, H, 36.8)
         assert torch.equal(a.hits, b.hits)
         torch.testing.assert_close(a.depth, b.depth, atol=0, rtol=0)

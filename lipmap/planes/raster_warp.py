@@ -14,16 +14,13 @@ The shape of gsplat's rasterizer and of the reference's ``renderCUDA``:
    nearer than the last one it took, as ``renderCUDA`` does;
 4. one reverse program per pixel (``_raster_bwd``) accumulates the per-plane gradients.
 
-Step 1 starts from the world-frame parameters: ``_setup_fwd`` moves each plane into the camera
-(:func:`lipmap.planes.render._planes_in_camera`, transcribed) and ``_setup_bwd`` carries the reverse pass's
-gradients back to centre, quaternion and radii, so a step dispatches a few dozen torch operations, not
-hundreds. Every pair is computed with the arithmetic of :func:`lipmap.planes.render._pair_terms`,
-transcribed in ``_pair_geo`` and ``_weight``: the torch backend is this module's reference twin, and the
-tests hold both to the same hits. Float32 only.
-
-Warp is imported on first use (:mod:`lipmap.planes.warp_runtime`, which also launches the kernels):
-``import lipmap`` works without it, and ``backend="auto"`` falls back to torch. Kernels compile on first launch per
-device (a few seconds; cached on disk afterwards).
+Step 1 starts from the world-frame parameters: ``_setup_fwd`` moves each plane into the camera and ``_setup_bwd``
+carries the reverse pass's gradients back to centre, quaternion and radii, so a step dispatches a few dozen torch
+operations, not hundreds. The setup and every pair transcribe :mod:`lipmap.planes.pairs` (``_planes_in_camera``,
+``_pair_terms``) operation by operation: the torch backend is this module's reference twin, and the tests hold both
+to the same hits. Float32 only. Warp is imported on first use (:mod:`lipmap.planes.warp_runtime`, which also
+launches the kernels): ``import lipmap`` works without it, and ``backend="auto"`` falls back to torch. Kernels
+compile on first launch per device (a few seconds; cached on disk afterwards).
 """
 
 import functools
@@ -81,7 +78,7 @@ def _define(wp):
     @wp.func
     def _pair_geo(c: wp.vec3, ax: wp.vec3, ay: wp.vec3, n: wp.vec3, r: wp.vec4, nc: float, u: float, v: float,
                   lam: float):
-        # render._pair_terms, operation by operation (same order: same rounding, same hits), up to the weight
+        # pairs._pair_terms, operation by operation (same order: same rounding, same hits), up to the weight
         den = n[0] * u + n[1] * v + n[2]
         t = nc / den
         qx = t * u - c[0]
@@ -162,7 +159,7 @@ def _define(wp):
 
     @wp.func
     def _to_camera(T: wp.array(dtype=float), center: wp.vec3, M: wp.mat33):
-        # render._planes_in_camera, operation by operation: c = R centre + t and the columns of R M
+        # pairs._planes_in_camera, operation by operation: c = R centre + t and the columns of R M
         c = wp.vec3(_row_dot(T, 0, center[0], center[1], center[2]) + T[3],
                     _row_dot(T, 1, center[0], center[1], center[2]) + T[7],
                     _row_dot(T, 2, center[0], center[1], center[2]) + T[11])
@@ -211,7 +208,7 @@ def _define(wp):
         g_n: wp.array2d(dtype=wp.vec3), g_r: wp.array2d(dtype=wp.vec4),
         g_center: wp.array(dtype=wp.vec3), g_quat: wp.array(dtype=wp.vec4), g_radii: wp.array(dtype=wp.vec4),
     ):
-        # the reverse of _setup_fwd (autograd of render._planes_in_camera); the raster reverse pass's per-chunk
+        # the reverse of _setup_fwd (autograd of pairs._planes_in_camera); the raster reverse pass's per-chunk
         # gradient buffers are summed here, chunk 0 first
         k = wp.tid()
         gc, gx, gy, gn = wp.vec3(), wp.vec3(), wp.vec3(), wp.vec3()
@@ -388,25 +385,9 @@ def _define(wp):
             if rule == 1:  # the reference's walk (planes by centre depth): a hit nearer than the last one is skipped
                 if m >= max_hits or tr < teps:
                     break
-                t, den, q, px, py, zx, zy, z = _pair_geo(c[k], ax[k], ay[k], n[k], r[k], nc[k], u, v, lam)
-                if not (t > near and t < inf) or z < z_reject or t < last:
-                    continue
-                w = float(1.0)
-                if not (z >= 0.0):
-                    w = 2.0 * _sigmoid(z)
-                if not (w > weps):
-                    continue
-                lt[m] = t
-                lw[m] = w
-                lk[m] = k
-                m += 1
-                last = t
-                tr = tr * (1.0 - w)
-                continue
-            zk = zmin[k]
-            if zk > cut:
+            elif zmin[k] > cut:
                 # the tile's planes are sorted by quantized nearest depth: none after this one can be nearer
-                if wp.floor(zk * steps) / steps > cut:
+                if wp.floor(zmin[k] * steps) / steps > cut:
                     break
                 continue
             t, den, q, px, py, zx, zy, z = _pair_geo(c[k], ax[k], ay[k], n[k], r[k], nc[k], u, v, lam)
@@ -416,6 +397,15 @@ def _define(wp):
             if not (z >= 0.0):  # _weight without the exponential inside the rectangle (NaN stays NaN)
                 w = 2.0 * _sigmoid(z)
             if not (w > weps):
+                continue
+            if rule == 1:
+                if t >= last:
+                    lt[m] = t
+                    lw[m] = w
+                    lk[m] = k
+                    m += 1
+                    last = t
+                    tr = tr * (1.0 - w)
                 continue
             pos = m
             while pos > 0 and (lt[pos - 1] > t or (lt[pos - 1] == t and lk[pos - 1] > k)):
@@ -559,7 +549,7 @@ _CPU_GRAD_SPLIT = 4
 def setup(center, quat, radii, T):
     """Step 1's first half: world-frame planes (K,3), (K,4), (K,4) and cam_from_world as 16 floats -> the camera-frame
     centre, X, Y, normal (K,3 each, the normal facing the camera), clamped radii (K,4) and n . c (K,), bit for bit
-    :func:`lipmap.planes.render._planes_in_camera`'s."""
+    :func:`lipmap.planes.pairs._planes_in_camera`'s."""
     kn = _kernels()
     wp = kn["wp"]
     center, quat, radii, T = (x.contiguous() for x in (center, quat, radii, T))
@@ -695,9 +685,9 @@ def rasterize(center, quat, radii, cam_from_world, u, v, intrinsics, width: int,
     """Render world-frame planes (centre (K,3), quaternion (K,4), radii (K,4)) into the camera ``cam_from_world``
     (4, 4) with the Warp kernels.
 
-    ``u`` (W,), ``v`` (H,): the pixel rays (:func:`lipmap.planes.render._pixel_axes`); ``dilate``: how far beyond
+    ``u`` (W,), ``v`` (H,): the pixel rays (:func:`lipmap.planes.pairs._pixel_axes`); ``dilate``: how far beyond
     its rectangle a plane is binned (its weight-1e-4 footprint and a margin); ``near``: the near plane's z (m);
-    ``hit_rule``: ``"nearest"`` or ``"reference"`` (:func:`lipmap.planes.render.select_hits`).
+    ``hit_rule``: ``"nearest"`` or ``"reference"`` (:func:`lipmap.planes.select.select_hits`).
     Returns depth (H, W), normal (H, W, 3), alpha (H, W), hits (H W, M) int64 in compositing order (nearest first
     under "nearest", depth ties: lower index first), -1 padded, and the planes some pixel composites (K,) bool; the first three are differentiable
     w.r.t. centre, quaternion and radii.
