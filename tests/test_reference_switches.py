@@ -277,6 +277,12 @@ def test_fast_adam_keeps_its_moments():
     assert not conf.reset_moments_on_recenter and float(opt.state[opt.param_groups[0]["params"][0]]["exp_avg"].abs().sum()) > 0
 
 
+def _blank_target(view=None):
+    """A view's target with no depth and no normals: what the renders and the line term see without supervision."""
+    return ViewTarget(view, CAM, torch.eye(4), torch.zeros(80, 100), torch.zeros(80, 100, 3),
+                      torch.zeros(80, 100, dtype=torch.bool), torch.zeros(80, 100, dtype=torch.bool))
+
+
 def _occluder_scene():
     """An occluder (plane 0, 1 m ahead, its right edge at x = 0: column 50) in front of a wall (plane 1, 1.5 m), and
     a detected vertical line along column 51.5: its region pixels' rays pass 0.5-2.5 cm right of the occluder."""
@@ -293,8 +299,7 @@ def test_line_term_first_hit_is_the_rectangle_not_its_splat():
     the wall."""
     planes, line = _occluder_scene()
     v = View("v", CAM, np.eye(4), color_path=None)
-    tgt = ViewTarget(v, CAM, torch.eye(4), torch.zeros(80, 100), torch.zeros(80, 100, 3),
-                     torch.zeros(80, 100, dtype=torch.bool), torch.zeros(80, 100, dtype=torch.bool))
+    tgt = _blank_target(v)
     out = rasterize_planes(planes.center, planes.quat, planes.radii, torch.eye(4), CAM.params, 100, 80, 36.8)
     assert int(out.hits[40, 51, 0]) == 0 and int(out.hits[40, 51, 1]) == 1  # the occluder's splat, then the wall
     got = {}
@@ -344,8 +349,7 @@ def test_paper_renders_with_the_reference_hit_rule():
     one it took: where the slanted plane (nearer centre) lies behind the wall, `paper` renders the slanted plane and
     `fast` the wall."""
     planes = _crossing_scene()
-    tgt = ViewTarget(None, CAM, torch.eye(4), torch.zeros(80, 100), torch.zeros(80, 100, 3),
-                     torch.zeros(80, 100, dtype=torch.bool), torch.zeros(80, 100, dtype=torch.bool))
+    tgt = _blank_target()
     first = {}
     for name in ("fast", "paper"):
         conf = replace(PlaneOptConfig.preset(name), max_hits=5)
@@ -361,8 +365,7 @@ def test_the_line_term_casts_every_ray_under_the_reference_hit_rule():
     term's first hit then comes from every plane, as the reference's ``ray_plane_intersect`` does."""
     planes = _crossing_scene()
     v = View("v", CAM, np.eye(4), color_path=None)
-    tgt = ViewTarget(v, CAM, torch.eye(4), torch.zeros(80, 100), torch.zeros(80, 100, 3),
-                     torch.zeros(80, 100, dtype=torch.bool), torch.zeros(80, 100, dtype=torch.bool))
+    tgt = _blank_target(v)
     line = np.array([[60.5, 30.0, 60.5, 50.0]])
     out = rasterize_planes(planes.center, planes.quat, planes.radii, torch.eye(4), CAM.params, 100, 80, 1500.0,
                            hit_rule="reference")
@@ -377,8 +380,7 @@ def test_culled_planes_are_not_rendered():
     nearer than 0.2 m; hits index the whole plane set."""
     planes = Planes.from_normals([[0.0, 0, 2.0], [0.1, 0, 1.5], [0.0, 0.1, 0.15]], [[0, 0, -1.0], [0, 0, 1.0], [0, 0, -1.0]],
                                  [0.2, 0.2, 0.05])
-    tgt = ViewTarget(None, CAM, torch.eye(4), torch.zeros(80, 100), torch.zeros(80, 100, 3),
-                     torch.zeros(80, 100, dtype=torch.bool), torch.zeros(80, 100, dtype=torch.bool))
+    tgt = _blank_target()
     params = planes.tensors()
     seen = {}
     for name, conf in (("fast", PlaneOptConfig.preset("fast")), ("paper", PlaneOptConfig.preset("paper"))):
@@ -391,8 +393,7 @@ def test_paper_near_plane_is_the_reference_s():
     """The reference renders nothing nearer than z = 0.1 m; fast's near plane is 1 cm. A slanted plane (centre 0.25 m,
     so near-centre culling keeps it) reaches z = 0.08 m at the image's left edge."""
     planes = Planes.from_normals([[0.0, 0, 0.25]], [[4.0, 0, -1.0]], [0.5])
-    tgt = ViewTarget(None, CAM, torch.eye(4), torch.zeros(80, 100), torch.zeros(80, 100, 3),
-                     torch.zeros(80, 100, dtype=torch.bool), torch.zeros(80, 100, dtype=torch.bool))
+    tgt = _blank_target()
     nearest = {}
     for name in ("fast", "paper"):
         conf = replace(PlaneOptConfig.preset(name), max_hits=5)
