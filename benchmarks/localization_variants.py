@@ -51,8 +51,9 @@ def variant_config(base: LocalizationConfig, over: dict) -> LocalizationConfig:
         if "lines_first" in hyp:
             hyp["lines_first"] = replace(base.line_rescue.hypotheses.lines_first, **hyp["lines_first"])
         rs["hypotheses"] = replace(base.line_rescue.hypotheses, **hyp)
-    if "line_gates" in over:
-        over["line_gates"] = tuple(tuple(float(x) for x in g) for g in over["line_gates"])
+    for key in ("line_gates", "strong_gates"):
+        if key in over:
+            over[key] = tuple(tuple(float(x) for x in g) for g in over[key])
     return replace(base, **over, line_query=replace(base.line_query, **lq),
                    point_line_pose=replace(base.point_line_pose, **pl), line_rescue=replace(base.line_rescue, **rs))
 

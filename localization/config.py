@@ -75,6 +75,11 @@ class LocalizationConfig:
     # per iteration (max_dist_px, max_angle_deg) gates of the line query, overriding line_iters and the gates of
     # line_query: wide while the pose is the point-only one, narrower once lines have refined it; () = fixed gates
     line_gates: tuple = ((8.0, 3.0), (4.0, 2.0), (2.0, 1.0))
+    # a query with at least this many point-only inliers is held to about a pixel by its points: its narrowing rounds
+    # are ``strong_gates``, each a local refinement from the inliers at the current pose instead of a RANSAC, whose
+    # minimal samples only pulled such a pose about (docs/localization.md, `-strong` variants). 0: off
+    strong_inliers: int = 50
+    strong_gates: tuple = ((4.0, 2.0), (2.0, 1.0))
     line_rescue: LineRescueConfig = field(default_factory=LineRescueConfig)
     # (m, deg): a narrowing round whose pose moves farther than this from the pose it started from is not taken (the
     # rounds refine a pose; a RANSAC jump is a different solution that few right matches support). () = off.
@@ -101,6 +106,9 @@ def check_config(conf: LocalizationConfig) -> LocalizationConfig:
         ("line_iters", conf.line_iters, _int(1), "an integer >= 1"),
         ("line_gates", conf.line_gates, lambda v: all(len(g) == 2 and _pos(g[0]) and _pos(g[1]) for g in v),
          "pairs (px > 0, deg > 0)"),
+        ("strong_inliers", conf.strong_inliers, _int(0), "an integer >= 0 (0: off)"),
+        ("strong_gates", conf.strong_gates, lambda v: len(v) >= 1 and all(len(g) == 2 and _pos(g[0]) and _pos(g[1]) for g in v),
+         "one or more pairs (px > 0, deg > 0)"),
         ("max_line_step", conf.max_line_step, lambda v: len(v) == 0 or (len(v) == 2 and _pos(v[0]) and _pos(v[1])),
          "() or (metres > 0, degrees > 0)"),
         ("point_pose.max_reproj_error", pp.max_reproj_error, _pos, "> 0 px"),

@@ -282,6 +282,51 @@ def pnpl_pose(
             "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": len(l2)}
 
 
+def local_pnpl_pose(
+    p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, lines3d: np.ndarray, camera, initial: np.ndarray,
+    conf: Optional[PointLinePoseConfig] = None,
+) -> dict:
+    """:func:`pnpl_pose` without RANSAC, for a start whose inliers are already known: the points and lines within
+    ``conf``'s thresholds at ``initial`` go straight into the same final refinement (``conf.refine``). From a pose
+    that hundreds of point inliers fix to a pixel, RANSAC's samples only find that pose again.
+
+    Args:
+        p2d: (N, 2) COLMAP pixels; p3d: (N, 3); lines2d: (M, 2, 2); lines3d: (M, 2, 3); initial: (4, 4).
+
+    Returns:
+        the dict of :func:`pnpl_pose`; its inliers are counted at the refined pose.
+    """
+    conf = conf or PointLinePoseConfig()
+    p2d, p3d, l2, l3, fail = _point_line_input(p2d, p3d, lines2d, lines3d)
+    okl = np.isfinite(l2).all((1, 2)) & np.isfinite(l3).all((1, 2))
+    if okl.sum() < conf.min_lines:
+        return {**fail, "reason": f"{int(okl.sum())} line matches < {conf.min_lines}"}
+    initial = np.asarray(initial, dtype=np.float64)
+    pt_inl, line_inl = _inliers_at(p2d, p3d, l2, l3, initial, camera, conf.max_reproj_error, conf.max_line_error)
+    if pt_inl.sum() + line_inl.sum() < 4:
+        return {**fail, "reason": "fewer than 4 correspondences within the thresholds at the start"}
+    if conf.refine == "weighted":
+        pose = _weighted_refinement(p2d[pt_inl], p3d[pt_inl], l2[line_inl], l3[line_inl], _camera_pose(initial),
+                                    camera, conf)
+    else:
+        import poselib
+
+        bundle = {"loss_type": "CAUCHY", "loss_scale": 0.5 * conf.max_reproj_error, **conf.bundle}
+        try:
+            pose, _ = poselib.refine_absolute_pose_pnpl(
+                p2d[pt_inl], p3d[pt_inl], l2[line_inl, 0], l2[line_inl, 1], l3[line_inl, 0], l3[line_inl, 1],
+                _camera_pose(initial), _camera_dict(camera), bundle, bundle)
+        except Exception as e:  # malformed input only
+            logger.warning("PoseLib PnPL refinement failed: %s", e)
+            return {**fail, "reason": f"PoseLib error: {e}"}
+    T = make_T(np.asarray(pose.R), np.asarray(pose.t))
+    if not np.all(np.isfinite(T)):
+        return {**fail, "reason": "refinement diverged"}
+    pt_inl, line_inl = _inliers_at(p2d, p3d, l2, l3, T, camera, conf.max_reproj_error, conf.max_line_error)
+    return {"cam_from_world": T, "success": bool(pt_inl.sum() + line_inl.sum() >= 4), "n_inliers": int(pt_inl.sum()),
+            "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": len(l2)}
+
+
 def pnpl_residuals(p2d, p3d, lines2d, lines3d, T: np.ndarray, camera) -> tuple:
     """Pixel residuals at pose ``T``: of each point :math:`(N,)` (reprojection error; inf behind the camera) and of
     each line's two 3D endpoints to its detection's infinite line :math:`(M, 2)` (PoseLib's line residual)."""
@@ -294,6 +339,13 @@ def pnpl_residuals(p2d, p3d, lines2d, lines3d, T: np.ndarray, camera) -> tuple:
         rl = geo.point_line_distance(ends, np.asarray(lines2d, dtype=float).reshape(-1, 1, 2, 2))
     rl = np.where(np.asarray(zl).reshape(-1, 2) > 0, rl, np.inf)
     return rp, rl
+
+
+def _inliers_at(p2d, p3d, l2, l3, T, camera, max_reproj_error: float, max_line_error: float) -> tuple:
+    """The points (N,) and lines (M,) within the thresholds at pose ``T`` (a line by both projected endpoints)."""
+    rp, rl = pnpl_residuals(p2d, p3d, l2, l3, T, camera)
+    with np.errstate(invalid="ignore"):
+        return rp <= max_reproj_error, np.all(rl <= max_line_error, axis=1)
 
 
 def _weighted_refinement(p2d, p3d, l2, l3, pose, camera, conf: PointLinePoseConfig):
@@ -353,10 +405,6 @@ def refine_pnpl_pose(
     T = make_T(np.asarray(pose.R), np.asarray(pose.t))
     if not np.all(np.isfinite(T)):
         return {**fail, "reason": "refinement diverged"}
-    uv, z = geo.project_points(p3d, T, camera) if len(p3d) else (np.zeros((0, 2)), np.zeros(0))
-    pt_inl = (np.asarray(z) > 0) & (np.linalg.norm(np.asarray(uv) - p2d, axis=1) <= max_reproj_error)
-    proj, valid = geo.project_segments(l3, T, camera)
-    with np.errstate(invalid="ignore"):
-        line_inl = valid & (geo.perpendicular_distance(proj, l2, "max") <= max_line_error)
+    pt_inl, line_inl = _inliers_at(p2d, p3d, l2, l3, T, camera, max_reproj_error, max_line_error)
     return {"cam_from_world": T, "success": bool(pt_inl.sum() + line_inl.sum() >= 4), "n_inliers": int(pt_inl.sum()),
             "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": len(l2)}

@@ -16,7 +16,7 @@ from lipmap import geometry as geo
 from lipmap.poses import pose_errors
 
 from .config import LocalizationConfig
-from .estimate import estimate_pose_points, pnpl_pose, refine_pnpl_pose, subsample_matches
+from .estimate import estimate_pose_points, local_pnpl_pose, pnpl_pose, refine_pnpl_pose, subsample_matches
 from .hypotheses import line_verified_poses
 from .linequery import LineQuery, LineQueryConfig, correct_line_matches
 
@@ -149,7 +149,8 @@ def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfi
     if line_matches is not None:
         T, m, inliers, used_lines, pl_inl = _pose_from_given_lines(pm, line_matches, T, camera, plconf)
     else:
-        T, m, inliers, used_lines, pl_inl = refine_with_lines(pm, lines2d, T, camera, lq, conf, plconf)
+        strong = not rescued and est["success"] and 0 < conf.strong_inliers <= est["n_inliers"]
+        T, m, inliers, used_lines, pl_inl = refine_with_lines(pm, lines2d, T, camera, lq, conf, plconf, strong)
     if pl_inl is not None:
         detail["point_line_inliers"] = pl_inl
     t_line = (time.perf_counter() - t1) * 1000
@@ -176,19 +177,31 @@ def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfi
     return rec, detail
 
 
-def refine_with_lines(pm, lines2d, T, camera, lq: LineQuery, conf: LocalizationConfig, plconf) -> tuple:
+def refine_with_lines(pm, lines2d, T, camera, lq: LineQuery, conf: LocalizationConfig, plconf,
+                      strong: bool = False) -> tuple:
     """The narrowing rounds from pose ``T``: query the map's lines, refine with PnPL, repeat with narrower gates
-    (:func:`line_query_schedule`); a round that fails or steps beyond ``conf.max_line_step`` ends them.
+    (:func:`line_query_schedule`); a round that fails or steps beyond ``conf.max_line_step`` ends them. A ``strong``
+    query (``LocalizationConfig.strong_inliers``) takes ``conf.strong_gates``, each round a local refinement.
 
     Returns:
         (pose, matches of the last round taken or None, their line inliers, whether a round was taken, the point
         inliers (N,) of that round or None).
     """
     m, inliers, used_lines, pl_inl = None, None, False, None
-    visible = lq.visible_lines(T, camera, conf.line_query.occlusion_tol) if conf.line_query.method == "projection" else None
-    for lconf in line_query_schedule(conf):
+    schedule = line_query_schedule(conf, strong)
+    visible = None
+    if conf.line_query.method == "projection":
+        # the map lines near some query line at twice the widest gate: the rounds move the pose by a few px
+        lq_ = conf.line_query
+        long = lines2d[geo.segment_lengths(lines2d) >= lq_.min_length_px] if len(lines2d) else lines2d
+        visible = lq.visible_near(long, T, camera, lq_.occlusion_tol, 2 * max(c.max_dist_px for c in schedule),
+                                  2 * max(c.max_angle_deg for c in schedule))
+    for lconf in schedule:
         tried = lq.match(lines2d, T, camera, lconf, visible)
-        r = pnpl_pose(pm.p2d, pm.p3d, tried["lines2d"], tried["lines3d"], camera, initial=T, conf=plconf)
+        if strong:
+            r = local_pnpl_pose(pm.p2d, pm.p3d, tried["lines2d"], tried["lines3d"], camera, T, plconf)
+        else:
+            r = pnpl_pose(pm.p2d, pm.p3d, tried["lines2d"], tried["lines3d"], camera, initial=T, conf=plconf)
         if r["success"] and conf.max_line_step and not _within(r["cam_from_world"], T, *conf.max_line_step):
             r = {**r, "success": False}
         if not r["success"]:
@@ -337,10 +350,11 @@ def distinct_poses(poses: list, max_m: float, max_deg: float) -> list:
     return out
 
 
-def line_query_schedule(conf: LocalizationConfig) -> list:
-    """The :class:`LineQueryConfig` of each query-and-refine iteration."""
-    if conf.line_gates:
-        return [replace(conf.line_query, max_dist_px=float(d), max_angle_deg=float(a)) for d, a in conf.line_gates]
+def line_query_schedule(conf: LocalizationConfig, strong: bool = False) -> list:
+    """The :class:`LineQueryConfig` of each query-and-refine iteration (of a strong query's, with ``strong``)."""
+    gates = conf.strong_gates if strong else conf.line_gates
+    if gates:
+        return [replace(conf.line_query, max_dist_px=float(d), max_angle_deg=float(a)) for d, a in gates]
     return [conf.line_query] * max(1, conf.line_iters)
 
 

@@ -3,7 +3,7 @@ from scipy.spatial.transform import Rotation
 
 from lipmap.poses import make_T, pose_errors
 from lipmap.scene import Camera
-from localization.estimate import PointLinePoseConfig, pnpl_pose, estimate_pose_points
+from localization.estimate import PointLinePoseConfig, estimate_pose_points, local_pnpl_pose, pnpl_pose
 
 CAM = Camera(640, 480, (525, 525, 320, 240))
 
@@ -82,3 +82,28 @@ def test_noisy_map_lines_never_cost_a_well_pointed_pose():
             worse[refine] += e > 1.5 * e_pt
     assert np.median(ratio["weighted"]) < 1.25 and worse["weighted"] <= 2, ratio["weighted"]
     assert np.median(ratio["poselib"]) > 1.5 * np.median(ratio["weighted"]), (ratio["poselib"], ratio["weighted"])
+
+
+def test_local_pnpl_from_a_well_pointed_pose_equals_ransac_and_drops_wrong_lines():
+    """From the point-only pose of hundreds of points, the inliers at that pose and the same weighted refinement
+    give RANSAC's pose (within a millimetre), and wrong line matches stay out."""
+    for seed in range(5):
+        T, x, X, l2, l3 = _scene(seed, n_pts=300, n_lines=60, noise=0.7)
+        l3 = l3.copy()
+        l3[:12] += np.random.default_rng(seed).normal(0, 0.5, (12, 2, 3))  # 12 of 60 wrong
+        pt = estimate_pose_points(x, X, CAM)
+        loc = local_pnpl_pose(x, X, l2, l3, CAM, pt["cam_from_world"], PointLinePoseConfig())
+        ran = pnpl_pose(x, X, l2, l3, CAM, initial=pt["cam_from_world"], conf=PointLinePoseConfig())
+        assert loc["success"] and pose_errors(T, loc["cam_from_world"])[0] < 0.01
+        assert pose_errors(loc["cam_from_world"], ran["cam_from_world"])[0] < 1e-3
+        assert loc["line_inliers"][:12].sum() <= 1 and loc["line_inliers"][12:].mean() > 0.9
+        assert loc["n_inliers"] >= 290
+
+
+def test_local_pnpl_refuses_too_few_lines_and_a_start_that_explains_nothing():
+    T, x, X, l2, l3 = _scene(2, n_pts=30)
+    assert "line matches" in local_pnpl_pose(x, X, l2[:2], l3[:2], CAM, T)["reason"]
+    far = T.copy()
+    far[:3, 3] += [1.0, 0.0, 0.0]
+    out = local_pnpl_pose(x, X, l2, l3, CAM, far, PointLinePoseConfig(max_reproj_error=2, max_line_error=1))
+    assert not out["success"] and "within the thresholds" in out["reason"]

@@ -173,6 +173,21 @@ class TestStartsAndMatches:
         assert est_d.success and _cm(est_d.cam_from_world, T) < 1.0
 
 
+    def test_a_query_its_points_hold_skips_ransac_in_the_narrowing_rounds(self, monkeypatch):
+        import localization.query as Q
+
+        T, X, ends = _scene(10, n_pts=300)
+        p2d, l2 = _observe(T, X, ends, np.random.default_rng(11))
+        calls, ransac = [], Q.pnpl_pose
+        monkeypatch.setattr(Q, "pnpl_pose", lambda *a, **k: calls.append(1) or ransac(*a, **k))
+        strong = _localizer(ends, strong_inliers=100).localize(PINHOLE, p2d, X, lines2d=l2)
+        assert not calls and strong.used_lines and len(strong.line_matches) > 40
+        weak = _localizer(ends, strong_inliers=301).localize(PINHOLE, p2d, X, lines2d=l2)  # above its inliers
+        assert len(calls) == 3 and weak.used_lines  # one RANSAC per narrowing round
+        assert _cm(strong.point_line.cam_from_world, T) < 0.5
+        assert _cm(strong.point_line.cam_from_world, weak.point_line.cam_from_world) < 0.1
+
+
 class TestConfig:
     def test_the_match_budget_is_honoured_and_seeded_by_the_query_name(self):
         T, X, ends = _scene(8)
@@ -192,6 +207,8 @@ class TestConfig:
         (LocalizationConfig(max_point_matches=-3), "max_point_matches"),
         (LocalizationConfig(line_rescue=LineRescueConfig(max_point_error=0)), "max_point_error"),
         (LocalizationConfig(max_line_step=(0.3,)), "max_line_step"),
+        (LocalizationConfig(strong_gates=()), "strong_gates"),
+        (LocalizationConfig(strong_inliers=-1), "strong_inliers"),
     ])
     def test_a_field_a_localizer_cannot_honour_is_refused(self, conf, field):
         _, _, ends = _scene(0)

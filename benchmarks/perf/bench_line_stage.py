@@ -45,14 +45,16 @@ class PartTimer:
         import localization.query as P
 
         self.P, self.lq, self.t, self.in_rescue, self.depth = P, lq, defaultdict(float), False, 0
-        self.saved = [(P, "line_verified_poses"), (P, "pnpl_pose"), (P, "refine_pnpl_pose"),
-                      (P, "rescue_pose"), (lq, "match"), (lq, "visible_lines")]
+        self.saved = [(P, "line_verified_poses"), (P, "pnpl_pose"), (P, "local_pnpl_pose"), (P, "refine_pnpl_pose"),
+                      (P, "rescue_pose"), (lq, "match"), (lq, "visible_lines"), (lq, "visible_near")]
         self.originals = [getattr(o, n) for o, n in self.saved]
         self._wrap(P, "line_verified_poses", lambda: "hypotheses")
         self._wrap(P, "pnpl_pose", lambda: "rescue PnPL" if self.in_rescue else "narrow PnPL")
+        self._wrap(P, "local_pnpl_pose", lambda: "narrow PnPL")
         self._wrap(lq, "match", lambda: "rescue query" if self.in_rescue else "narrow query")
         self._wrap(P, "refine_pnpl_pose", lambda: "rescue PnPL")
         self._wrap(lq, "visible_lines", lambda: "rescue query" if self.in_rescue else "visibility")
+        self._wrap(lq, "visible_near", lambda: "rescue query" if self.in_rescue else "visibility")
         rescue = P.rescue_pose
 
         def flagged(*a, **k):
