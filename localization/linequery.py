@@ -160,37 +160,31 @@ class LineQuery:
         """Indices of map lines in front of the camera, inside the image, and not hidden by the planes."""
         return visible_lines(self.lines, T, camera, self.caster, tol)
 
-    def visible_near(self, lines2d: np.ndarray, T, camera, tol: float, max_dist_px: float, max_angle_deg: float,
-                     min_support: int = 0) -> np.ndarray:
-        """The map lines of :meth:`visible_lines` that some query line (N, 4) lies near under pose ``T``: its
-        midpoint within ``max_dist_px`` of the projected infinite line and its direction within ``max_angle_deg``.
-
-        A query matches only such lines, and most of a view's map lines are near none: the occlusion test, the
-        costly part, is made for these alone. Lines seen in fewer than ``min_support`` images are left out first.
-        """
-        cand = np.flatnonzero(self.support >= min_support)
-        lines2d = np.asarray(lines2d, dtype=float).reshape(-1, 4)
-        if len(cand) == 0 or len(lines2d) == 0:
-            return np.zeros(0, np.int64)
-        proj, valid = geo.project_segments(self.lines[cand], T, camera)
-        cand, proj = cand[valid], proj[valid]
-        _, pj, _ = _screen_pairs(geo.as_segments2d(lines2d), proj, max_dist_px, max_angle_deg)
-        cand = cand[np.unique(pj)]
-        return cand[visible_lines(self.lines[cand], T, camera, self.caster, tol)]
-
     def _projection(self, q, T, camera, conf, visible=None):
-        if visible is None:  # only lines some query line lies near can match: the occlusion test for those alone
-            vis = self.visible_near(q, T, camera, conf.occlusion_tol, conf.max_dist_px, conf.max_angle_deg,
-                                    conf.min_support)
-        else:
-            vis = np.asarray(visible, dtype=np.int64)
-            vis = vis[self.support[vis] >= conf.min_support]
+        vis = self.visible_lines(T, camera, conf.occlusion_tol) if visible is None else np.asarray(visible, dtype=np.int64)
+        vis = vis[self.support[vis] >= conf.min_support]
         if len(vis) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         proj, _ = geo.project_segments(self.lines[vis], T, camera)
         qs = geo.as_segments2d(q)
-        qi, pj, (dq, dp, nrm, off) = _screen_pairs(qs, proj, conf.max_dist_px, conf.max_angle_deg)
+        # Two cheap tests over all pairs (a query has ~300 lines, a view ~1,000-3,000 map lines), as float32 matrix
+        # products: the angle, and the query line's midpoint within the gate of the projected infinite line (its unit
+        # normal), which both endpoints being within it implies (one product instead of one per endpoint). About 1 %
+        # of the pairs are left; they get the exact tests in float64.
+        dq = qs[:, 1] - qs[:, 0]
+        dp = proj[:, 1] - proj[:, 0]
+        dq = dq / np.maximum(np.linalg.norm(dq, axis=1, keepdims=True), 1e-9)
+        lp = np.maximum(np.linalg.norm(dp, axis=1, keepdims=True), 1e-9)
+        dp = dp / lp
+        nrm = np.stack([-dp[:, 1], dp[:, 0]], 1)  # (P, 2) unit normals of the projected lines
+        off = (nrm * proj[:, 0]).sum(1)
         cos_gate = np.cos(np.radians(conf.max_angle_deg))
+        with np.errstate(invalid="ignore"):  # NaN projections (behind the camera) pass no test
+            # gates a hair wider than the float64 ones below, which decide
+            mid32 = (0.5 * (qs[:, 0] + qs[:, 1])).astype(np.float32)
+            m = np.abs(mid32 @ nrm.T.astype(np.float32) - off.astype(np.float32)) <= np.float32(conf.max_dist_px + 1e-3)
+            m &= np.abs(dq.astype(np.float32) @ dp.T.astype(np.float32)) >= np.float32(cos_gate - 1e-5)
+        qi, pj = np.divmod(np.flatnonzero(m), m.shape[1])  # np.nonzero's (qi, pj) order, 10x faster on (Q, P)
         cos = np.abs((dq[qi] * dp[pj]).sum(1))
         d0 = np.abs((qs[qi, 0] * nrm[pj]).sum(1) - off[pj])
         d1 = np.abs((qs[qi, 1] * nrm[pj]).sum(1) - off[pj])
@@ -249,35 +243,6 @@ class LineQuery:
             "angle": ang[ok],
             "dist": dist[ok],
         }
-
-
-def _screen_pairs(qs: np.ndarray, proj: np.ndarray, max_dist_px: float, max_angle_deg: float) -> tuple:
-    """The (query line, projected line) pairs that may lie within the gate, by two cheap tests over all pairs (a
-    query has ~300 lines, a view ~1,000-3,000 map lines) as float32 matrix products: the angle, and the query line's
-    midpoint within the gate of the projected infinite line (which both endpoints being within it implies). About
-    1 % of the pairs are left, for the exact float64 tests.
-
-    Args:
-        qs: :math:`(Q, 2, 2)` query segments; proj: :math:`(P, 2, 2)` projected map segments (NaN: none).
-
-    Returns:
-        (qi, pj, (dq, dp, nrm, off)): the pairs' indices in np.nonzero's order, and the unit directions (Q, 2) and
-        (P, 2), the projected lines' unit normals (P, 2) and offsets (P,).
-    """
-    dq = qs[:, 1] - qs[:, 0]
-    dp = proj[:, 1] - proj[:, 0]
-    dq = dq / np.maximum(np.linalg.norm(dq, axis=1, keepdims=True), 1e-9)
-    dp = dp / np.maximum(np.linalg.norm(dp, axis=1, keepdims=True), 1e-9)
-    nrm = np.stack([-dp[:, 1], dp[:, 0]], 1)
-    off = (nrm * proj[:, 0]).sum(1)
-    cos_gate = np.cos(np.radians(max_angle_deg))
-    with np.errstate(invalid="ignore"):  # NaN projections (behind the camera) pass no test
-        # gates a hair wider than the float64 ones that decide
-        mid32 = (0.5 * (qs[:, 0] + qs[:, 1])).astype(np.float32)
-        m = np.abs(mid32 @ nrm.T.astype(np.float32) - off.astype(np.float32)) <= np.float32(max_dist_px + 1e-3)
-        m &= np.abs(dq.astype(np.float32) @ dp.T.astype(np.float32)) >= np.float32(cos_gate - 1e-5)
-    qi, pj = np.divmod(np.flatnonzero(m), m.shape[1])  # np.nonzero's (qi, pj) order, 10x faster on (Q, P)
-    return qi, pj, (dq, dp, nrm, off)
 
 
 def _same_line_3d(a: np.ndarray, b: np.ndarray, tol: float, max_angle_deg: float = 5.0) -> np.ndarray:

@@ -189,13 +189,7 @@ def refine_with_lines(pm, lines2d, T, camera, lq: LineQuery, conf: LocalizationC
     """
     m, inliers, used_lines, pl_inl = None, None, False, None
     schedule = line_query_schedule(conf, strong)
-    visible = None
-    if conf.line_query.method == "projection":
-        # the map lines near some query line at twice the widest gate: the rounds move the pose by a few px
-        lq_ = conf.line_query
-        long = lines2d[geo.segment_lengths(lines2d) >= lq_.min_length_px] if len(lines2d) else lines2d
-        visible = lq.visible_near(long, T, camera, lq_.occlusion_tol, 2 * max(c.max_dist_px for c in schedule),
-                                  2 * max(c.max_angle_deg for c in schedule))
+    visible = lq.visible_lines(T, camera, conf.line_query.occlusion_tol) if conf.line_query.method == "projection" else None
     for lconf in schedule:
         tried = lq.match(lines2d, T, camera, lconf, visible)
         if strong:

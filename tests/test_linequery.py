@@ -174,30 +174,3 @@ def test_projection_candidates_equal_a_float64_reference():
         mid = geo.perpendicular_distance(np.repeat(qs.mean(-2, keepdims=True), 2, -2), proj[None], "max")
     assert ((ang <= np.radians(3)) & (mid <= 8) & (dist > 8) & (ov >= 0.3)).sum() > 0
     assert len(ref) > 50 and got == {(int(i), int(j)) for i, j in ref}
-
-
-def test_visible_near_is_the_visible_lines_some_query_line_lies_near():
-    """The occlusion test made for the screened lines alone keeps exactly the visible lines that pass the screen,
-    and a query matched without a given visible set equals one matched against every visible line."""
-    rng = np.random.default_rng(1)
-    corners, views, lines, edge_line = _map()
-    T = views[0].cam_from_world
-    a = np.c_[rng.uniform(-1.0, 1.0, (300, 2)), rng.uniform(2, 4.9, 300)]
-    extra = np.stack([a, a + rng.normal(0, 0.3, (300, 3))], 1)
-    allines = np.concatenate([lines, extra])
-    lq = LineQuery(allines, corners)
-    q = _query_lines(allines[::3], T) + rng.normal(0, 1.5, (len(allines[::3]), 4))
-    q = q[np.all(np.isfinite(q), 1)]
-    full = lq.visible_lines(T, SMALL_CAMERA, 0.05)
-    near = lq.visible_near(q, T, SMALL_CAMERA, 0.05, 8.0, 3.0)
-    assert 0 < len(near) < len(full) and set(near) <= set(full)
-    proj, _ = geo.project_segments(allines[full], T, SMALL_CAMERA)
-    qs = geo.as_segments2d(q)[:, None]
-    with np.errstate(invalid="ignore"):
-        mid = geo.perpendicular_distance(np.repeat(qs.mean(-2, keepdims=True), 2, -2), proj[None], "max")
-        ang = geo.angle_distance(qs, proj[None])
-    assert set(near) == set(full[((mid <= 8.0) & (ang <= np.radians(3.0))).any(0)])
-    conf = LineQueryConfig(method="projection", max_dist_px=8, max_angle_deg=3)
-    a_, b_ = lq.match(q, T, SMALL_CAMERA, conf), lq.match(q, T, SMALL_CAMERA, conf, visible=full)
-    assert len(a_["line_idx"]) > 20
-    assert a_["query_idx"].tolist() == b_["query_idx"].tolist() and a_["line_idx"].tolist() == b_["line_idx"].tolist()

@@ -46,7 +46,7 @@ class PartTimer:
 
         self.P, self.lq, self.t, self.in_rescue, self.depth = P, lq, defaultdict(float), False, 0
         self.saved = [(P, "line_verified_poses"), (P, "pnpl_pose"), (P, "local_pnpl_pose"), (P, "refine_pnpl_pose"),
-                      (P, "rescue_pose"), (lq, "match"), (lq, "visible_lines"), (lq, "visible_near")]
+                      (P, "rescue_pose"), (lq, "match"), (lq, "visible_lines")]
         self.originals = [getattr(o, n) for o, n in self.saved]
         self._wrap(P, "line_verified_poses", lambda: "hypotheses")
         self._wrap(P, "pnpl_pose", lambda: "rescue PnPL" if self.in_rescue else "narrow PnPL")
@@ -54,7 +54,6 @@ class PartTimer:
         self._wrap(lq, "match", lambda: "rescue query" if self.in_rescue else "narrow query")
         self._wrap(P, "refine_pnpl_pose", lambda: "rescue PnPL")
         self._wrap(lq, "visible_lines", lambda: "rescue query" if self.in_rescue else "visibility")
-        self._wrap(lq, "visible_near", lambda: "rescue query" if self.in_rescue else "visibility")
         rescue = P.rescue_pose
 
         def flagged(*a, **k):
