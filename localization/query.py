@@ -188,9 +188,8 @@ def refine_with_lines(pm, lines2d, T, camera, lq: LineQuery, conf: LocalizationC
         inliers (N,) of that round or None).
     """
     m, inliers, used_lines, pl_inl = None, None, False, None
-    schedule = line_query_schedule(conf, strong)
     visible = lq.visible_lines(T, camera, conf.line_query.occlusion_tol) if conf.line_query.method == "projection" else None
-    for lconf in schedule:
+    for lconf in line_query_schedule(conf, strong):
         tried = lq.match(lines2d, T, camera, lconf, visible)
         if strong:
             r = local_pnpl_pose(pm.p2d, pm.p3d, tried["lines2d"], tried["lines3d"], camera, T, plconf)
