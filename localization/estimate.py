@@ -308,21 +308,23 @@ def local_pnpl_pose(
     if conf.refine == "weighted":
         pose = _weighted_refinement(p2d[pt_inl], p3d[pt_inl], l2[line_inl], l3[line_inl], _camera_pose(initial),
                                     camera, conf)
-    else:
-        import poselib
+        T = make_T(np.asarray(pose.R), np.asarray(pose.t))
+    else:  # PoseLib's one Cauchy scale for both kinds, half the point threshold
+        half = 0.5 * conf.max_reproj_error
+        r = refine_pnpl_pose(p2d[pt_inl], p3d[pt_inl], l2[line_inl], l3[line_inl], camera, initial, half, half,
+                             conf.max_reproj_error, conf.max_line_error)
+        if r["cam_from_world"] is None:
+            return {**fail, "reason": r["reason"]}
+        T = r["cam_from_world"]
+    return _pose_result(T, p2d, p3d, l2, l3, camera, conf.max_reproj_error, conf.max_line_error, fail)
 
-        bundle = {"loss_type": "CAUCHY", "loss_scale": 0.5 * conf.max_reproj_error, **conf.bundle}
-        try:
-            pose, _ = poselib.refine_absolute_pose_pnpl(
-                p2d[pt_inl], p3d[pt_inl], l2[line_inl, 0], l2[line_inl, 1], l3[line_inl, 0], l3[line_inl, 1],
-                _camera_pose(initial), _camera_dict(camera), bundle, bundle)
-        except Exception as e:  # malformed input only
-            logger.warning("PoseLib PnPL refinement failed: %s", e)
-            return {**fail, "reason": f"PoseLib error: {e}"}
-    T = make_T(np.asarray(pose.R), np.asarray(pose.t))
+
+def _pose_result(T, p2d, p3d, l2, l3, camera, max_reproj_error: float, max_line_error: float, fail: dict) -> dict:
+    """The dict of :func:`pnpl_pose` for a refined pose ``T``: its inliers counted at ``T`` (``fail`` when ``T``
+    is not finite)."""
     if not np.all(np.isfinite(T)):
         return {**fail, "reason": "refinement diverged"}
-    pt_inl, line_inl = _inliers_at(p2d, p3d, l2, l3, T, camera, conf.max_reproj_error, conf.max_line_error)
+    pt_inl, line_inl = _inliers_at(p2d, p3d, l2, l3, T, camera, max_reproj_error, max_line_error)
     return {"cam_from_world": T, "success": bool(pt_inl.sum() + line_inl.sum() >= 4), "n_inliers": int(pt_inl.sum()),
             "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": len(l2)}
 
@@ -402,9 +404,5 @@ def refine_pnpl_pose(
     except Exception as e:  # malformed input only
         logger.warning("PoseLib PnPL refinement failed: %s", e)
         return {**fail, "reason": f"PoseLib error: {e}"}
-    T = make_T(np.asarray(pose.R), np.asarray(pose.t))
-    if not np.all(np.isfinite(T)):
-        return {**fail, "reason": "refinement diverged"}
-    pt_inl, line_inl = _inliers_at(p2d, p3d, l2, l3, T, camera, max_reproj_error, max_line_error)
-    return {"cam_from_world": T, "success": bool(pt_inl.sum() + line_inl.sum() >= 4), "n_inliers": int(pt_inl.sum()),
-            "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": len(l2)}
+    return _pose_result(make_T(np.asarray(pose.R), np.asarray(pose.t)), p2d, p3d, l2, l3, camera, max_reproj_error,
+                        max_line_error, fail)

@@ -98,6 +98,8 @@ def test_local_pnpl_from_a_well_pointed_pose_equals_ransac_and_drops_wrong_lines
         assert pose_errors(loc["cam_from_world"], ran["cam_from_world"])[0] < 1e-3
         assert loc["line_inliers"][:12].sum() <= 1 and loc["line_inliers"][12:].mean() > 0.9
         assert loc["n_inliers"] >= 290
+        one = local_pnpl_pose(x, X, l2, l3, CAM, pt["cam_from_world"], PointLinePoseConfig(refine="poselib"))
+        assert one["success"] and pose_errors(T, one["cam_from_world"])[0] < 0.01 and one["line_inliers"][:12].sum() <= 1
 
 
 def test_local_pnpl_refuses_too_few_lines_and_a_start_that_explains_nothing():
