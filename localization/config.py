@@ -36,10 +36,10 @@ class LineRescueConfig:
     prior_views: int = 0  # retrieved images' poses as starts (on the held-out split they lie ~90 cm off: no gain)
     # P3P poses of the point matches that the most map lines agree with, as starts (localization.hypotheses)
     hypotheses: HypothesisConfig = field(default_factory=HypothesisConfig)
-    # (px, deg[, candidates]) per stage: the first from every prior, the next from the best pose; the second bridges
-    # the wide gate and the 8 px of the narrowing rounds, which a pose 5-10 cm off missed (docs/localization.md, `-sweep2`
-    # variants). From that pose each query line's nearest map line is enough: 20 % less time (`-speed2`)
-    gates: tuple = ((30.0, 5.0), (15.0, 3.0, 1))
+    # (px, deg[, candidates]) per stage: the first, PnPL RANSAC from every start; the later ones refine each pose it
+    # keeps with each query line's nearest map lines, without RANSAC, and the most inliers at the last one win. They
+    # bridge the wide gate and the narrowing rounds, which a pose 5-10 cm off missed (docs/localization.md, `-polish`)
+    gates: tuple = ((30.0, 5.0), (15.0, 3.0, 1), (8.0, 3.0, 1))
     candidates: int = 3  # per query line, in a stage that does not name its own
     min_length_px: float = 20.0  # query lines shorter than this stay out of the rescue (the line query's own minimum)
     max_query_lines: int = 0  # only the longest this many query lines enter the rescue (0: all)
@@ -57,7 +57,10 @@ class LineRescueConfig:
     # ``refine_scale`` x the gate) of its nearest candidates, without RANSAC: half the time, a higher median (docs/localization.md)
     solver: str = "ransac"
     refine_gates: tuple = ((30.0, 5.0, 1), (15.0, 3.0, 1), (8.0, 3.0, 1))
-    refine_scale: float = 0.25
+    refine_scale: float = 0.25  # the Cauchy scale of the lines in a refinement stage, times its gate (px)
+    # a rescued pose's narrowing rounds are local refinements (``LocalizationConfig.strong_gates``) rather than
+    # RANSAC's, which pulled such poses off as it pulls a start at the true pose (docs/localization.md, `-polish`)
+    local_rounds: bool = True
 
 
 @dataclass
@@ -144,9 +147,9 @@ def check_config(conf: LocalizationConfig) -> LocalizationConfig:
         ("line_query.max_candidates", lq.max_candidates, _int(1), "an integer >= 1"),
         ("line_rescue.weak_inliers", rc.weak_inliers, _int(0), "an integer >= 0 (0: off)"),
         ("line_rescue.prior_views", rc.prior_views, _int(0), "an integer >= 0"),
-        ("line_rescue.gates", rc.gates, lambda v: all(len(g) in (2, 3) and _pos(g[0]) and _pos(g[1])
+        ("line_rescue.gates", rc.gates, lambda v: len(v) >= 1 and all(len(g) in (2, 3) and _pos(g[0]) and _pos(g[1])
                                                        and (len(g) == 2 or _int(1)(g[2])) for g in v),
-         "(px > 0, deg > 0[, candidates >= 1]) per stage"),
+         "one or more (px > 0, deg > 0[, candidates >= 1]) stages"),
         ("line_rescue.refine_gates", rc.refine_gates, lambda v: all(len(g) in (2, 3) and _pos(g[0]) and _pos(g[1]) for g in v),
          "(px > 0, deg > 0[, candidates]) per stage"),
         ("line_rescue.candidates", rc.candidates, _int(1), "an integer >= 1"),

@@ -225,6 +225,60 @@ def test_rescue_by_refinement_recovers_the_pose_and_tests_visibility_once_per_st
         assert len(calls) == 2  # one per start, not per stage
 
 
+def test_ransac_rescue_refines_each_kept_pose_without_ransac_and_picks_by_the_last_stage(monkeypatch):
+    """One PnPL RANSAC per start; the later gates refine each kept pose (no more RANSAC), and the best score at the
+    last gate wins: the useless start's pose, kept or not, loses to the near one's."""
+    import localization.query as Q
+
+    T, ends, l2, pm = _scene(2)
+    lq = LineQuery(ends)
+    ransacs, refines = [], []
+    pnpl, refine = Q.pnpl_pose, Q.refine_pnpl_pose
+    monkeypatch.setattr(Q, "pnpl_pose", lambda *a, **k: ransacs.append(1) or pnpl(*a, **k))
+    monkeypatch.setattr(Q, "refine_pnpl_pose", lambda *a, **k: refines.append(1) or refine(*a, **k))
+    rescue = LineRescueConfig(weak_inliers=12)  # the default gates: RANSAC at 30 px, then 15 and 8 px refinements
+    trace = []
+    r = rescue_pose(pm, l2, [_off(T, 60, 40), _off(T, 8, 3)], lq, CAM, replace(LocalizationConfig(), line_rescue=rescue),
+                    trace)
+    assert len(ransacs) == 2 and len(rescue.gates) == 3
+    kept0 = [i for i, t in enumerate(trace) if t["stage"] == 0 and t["kept"]]
+    assert len(refines) == 2 * len(kept0) and kept0  # two refinement stages per kept RANSAC pose
+    last = {t["origin"]: t for t in trace}
+    best = max((last[i] for i in kept0), key=lambda t: t["score"])
+    assert best["stage"] == 2 and best["result"] is r
+    assert pose_errors(T, r["cam_from_world"])[0] < 0.005
+    # one stage only: RANSAC's own pose and score
+    one = replace(rescue, gates=((30, 5),))
+    r1 = rescue_pose(pm, l2, [_off(T, 8, 3)], lq, CAM, replace(LocalizationConfig(), line_rescue=one))
+    assert len(ransacs) == 3 and len(refines) == 2 * len(kept0) and pose_errors(T, r1["cam_from_world"])[0] < 0.005
+
+
+@pytest.mark.parametrize("local_rounds", [True, False])
+def test_a_rescued_pose_narrows_by_local_refinements(monkeypatch, local_rounds):
+    """After the rescue, the narrowing rounds are local refinements at the strong gates (no RANSAC), unless
+    ``local_rounds`` is off."""
+    import localization.query as Q
+
+    T, ends, l2, pm = _scene(1)
+    points = _Points(pm, _Model({"db1": _off(T, 60, 40), "db2": _off(T, 6, 2)}))
+    calls = []
+    pnpl, local = Q.pnpl_pose, Q.local_pnpl_pose
+    monkeypatch.setattr(Q, "pnpl_pose", lambda *a, **k: calls.append("ransac") or pnpl(*a, **k))
+    monkeypatch.setattr(Q, "local_pnpl_pose", lambda *a, **k: calls.append("local") or local(*a, **k))
+    rescue = LineRescueConfig(weak_inliers=12, prior_views=2, local_rounds=local_rounds,
+                              hypotheses=replace(LineRescueConfig().hypotheses, keep=0))
+    conf = replace(LocalizationConfig(), line_rescue=rescue)
+    rec = localize_query("q", CAM, points, l2, LineQuery(ends), conf)
+    pl = rec["point+line"]
+    assert pl["success"] and pl["rescued"] and pose_errors(T, np.array(pl["cam_from_world"]))[0] < 0.005
+    rounds = calls[2:]  # after the rescue's RANSAC from each of the two starts
+    assert calls[:2] == ["ransac", "ransac"]
+    if local_rounds:
+        assert rounds == ["local"] * len(conf.strong_gates)
+    else:
+        assert rounds == ["ransac"] * len(conf.line_gates)
+
+
 def test_unknown_rescue_solver_is_refused():
     T, ends, l2, pm = _scene(0)
     conf = replace(LocalizationConfig(), line_rescue=LineRescueConfig(solver="icp"))

@@ -201,6 +201,25 @@ def test_torch_raycaster_agrees_with_embree():
     np.testing.assert_allclose(t_t.numpy()[agree & (k_e >= 0)], t_e[agree & (k_e >= 0)], atol=1e-6)
 
 
+def test_hit_distance_is_first_hits_without_the_hit_points():
+    rng = np.random.default_rng(1)
+    corners = np.stack(
+        [rect(rng.uniform(-1, 1, 3) + [0, 0, 3], *rng.uniform(0.1, 0.5, 2), Rotation.random(random_state=i).as_matrix())
+         for i in range(60)]
+    )
+    from lipmap.mapping.assign import pixel_rays_world
+
+    pix = np.stack([rng.integers(0, 320, 500), rng.integers(0, 240, 500)], 1)
+    o, d = pixel_rays_world(pix, np.eye(4), CAM)
+    caster = PlaneRaycaster(corners)
+    k, t = caster.first_hit(o, d)
+    h = caster.hit_distance(o, d)
+    assert (k >= 0).sum() > 50 and (k < 0).sum() > 50
+    assert np.all(np.isinf(h[k < 0]))
+    np.testing.assert_allclose(h[k >= 0], t[k >= 0], rtol=1e-5)  # embree's float32 hit parameter
+    assert caster.hit_distance(o[:0], d[:0]).shape == (0,)
+
+
 def test_depth_residuals_measure_distance_to_sensor_depth():
     corners, views = scene()
     depth = {v.name: raycast_depth(corners, v) for v in views}

@@ -208,6 +208,7 @@ class TestConfig:
         (LocalizationConfig(line_rescue=LineRescueConfig(max_point_error=0)), "max_point_error"),
         (LocalizationConfig(max_line_step=(0.3,)), "max_line_step"),
         (LocalizationConfig(strong_gates=()), "strong_gates"),
+        (LocalizationConfig(line_rescue=LineRescueConfig(gates=())), "line_rescue.gates"),
         (LocalizationConfig(strong_inliers=-1), "strong_inliers"),
     ])
     def test_a_field_a_localizer_cannot_honour_is_refused(self, conf, field):

@@ -132,6 +132,18 @@ class PlaneRaycaster:
         return plane, dist
 
 
+    def hit_distance(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """(P, 3), (P, 3) -> the distance (P,) along each unit ray to its first hit (inf: miss): :meth:`first_hit`'s,
+        to float32 precision (embree's own hit parameter), without trimesh computing the hit points (a third of the
+        time of a visibility test)."""
+        scene = getattr(self._isect, "_scene", None)  # trimesh's embree wrapper; absent in the pure-python fallback
+        if scene is None or len(origins) == 0:
+            return self.first_hit(origins, dirs)[1]
+        res = scene.run(np.asarray(origins, dtype=np.float64), np.asarray(dirs, dtype=np.float64), output=1)
+        t = np.asarray(res["tfar"], dtype=np.float64) / scene.scale  # the scene is stored scaled by ``scale``
+        return np.where(np.asarray(res["geomID"]) >= 0, t, np.inf)
+
+
 def plane_depth(caster: PlaneRaycaster, view) -> np.ndarray:
     """Z-depth :math:`(H, W)` float32 (metres, 0 where no plane is hit) of every pixel of ``view`` at its
     camera resolution, by ray casting the rectangles (hard borders, first hit)."""
@@ -397,7 +409,7 @@ def visible_lines(lines3d: np.ndarray, cam_from_world: np.ndarray, camera, caste
 
     def unoccluded(rows, col):
         d = dirs[rows, col]
-        _, hit = caster.first_hit(np.broadcast_to(C, d.shape).copy(), d)
+        hit = caster.hit_distance(np.broadcast_to(C, d.shape).copy(), d)
         return hit >= dist[rows, col] - tol - 0.02 * dist[rows, col]
 
     # the midpoint decides only where the endpoints disagree: a third fewer rays, the same answer
