@@ -469,8 +469,8 @@ def _add_eval_parser(sub):
                         "gates around the P3P poses of its matches that the map lines agree with "
                         f"(default {LocalizationConfig().line_rescue.weak_inliers}; 0: off)")
     p.add_argument("--rescue-solver", default=None, choices=["ransac", "refine"],
-                   help="how the rescue estimates a pose from each start: PnPL RANSAC (default), or a robust refinement "
-                        "in narrowing gates, about half the time and less accurate (docs/localization.md)")
+                   help="how the rescue estimates a pose from each start: PnPL RANSAC, then robust refinements in "
+                        "narrowing gates (default), or the refinements alone: faster, less accurate (docs/localization.md)")
     p.add_argument("--max-line-step", default=None, type=_max_line_step, metavar="M,DEG",
                    help="a line refinement round whose pose moves farther than M metres or DEG degrees from its start "
                         "is refused and the rounds stop (default %s; 'off': every round is taken)"

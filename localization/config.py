@@ -28,8 +28,9 @@ class LineRescueConfig:
     most map lines agree with (``hypotheses``, :mod:`localization.hypotheses`), and optionally the poses of the
     ``prior_views`` best retrieved database images. From each, every query line takes its ``candidates`` nearest
     map lines within the wide gate (no ambiguity test), and PnPL's RANSAC over all point matches and these
-    candidates picks a pose; the pose with the most point + line inliers (at least ``min_line_inliers`` lines)
-    starts the usual narrowing refinement, with ``max_point_error`` for the points.
+    candidates picks a pose; each such pose is refined at the later ``gates`` without RANSAC, and the one with the
+    most point + line inliers at the last gate (at least ``min_line_inliers`` lines) narrows like a strong query's
+    (``local_rounds``), with ``max_point_error`` for the points.
     """
 
     weak_inliers: int = 20  # 0: off. Ten point matches are always weak; a full query (hundreds of inliers) never

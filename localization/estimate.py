@@ -302,12 +302,13 @@ def local_pnpl_pose(
     if okl.sum() < conf.min_lines:
         return {**fail, "reason": f"{int(okl.sum())} line matches < {conf.min_lines}"}
     initial = np.asarray(initial, dtype=np.float64)
-    pt_inl, line_inl = _inliers_at(p2d, p3d, l2, l3, initial, camera, conf.max_reproj_error, conf.max_line_error)
+    rp, rl = pnpl_residuals(p2d, p3d, l2, l3, initial, camera)
+    pt_inl, line_inl = _within_thresholds(rp, rl, conf.max_reproj_error, conf.max_line_error)
     if pt_inl.sum() + line_inl.sum() < 4:
         return {**fail, "reason": "fewer than 4 correspondences within the thresholds at the start"}
     if conf.refine == "weighted":
         pose = _weighted_refinement(p2d[pt_inl], p3d[pt_inl], l2[line_inl], l3[line_inl], _camera_pose(initial),
-                                    camera, conf)
+                                    camera, conf, residuals=(rp[pt_inl], rl[line_inl]))
         T = make_T(np.asarray(pose.R), np.asarray(pose.t))
     else:  # PoseLib's one Cauchy scale for both kinds, half the point threshold
         half = 0.5 * conf.max_reproj_error
@@ -345,18 +346,23 @@ def pnpl_residuals(p2d, p3d, lines2d, lines3d, T: np.ndarray, camera) -> tuple:
 
 def _inliers_at(p2d, p3d, l2, l3, T, camera, max_reproj_error: float, max_line_error: float) -> tuple:
     """The points (N,) and lines (M,) within the thresholds at pose ``T`` (a line by both projected endpoints)."""
-    rp, rl = pnpl_residuals(p2d, p3d, l2, l3, T, camera)
+    return _within_thresholds(*pnpl_residuals(p2d, p3d, l2, l3, T, camera), max_reproj_error, max_line_error)
+
+
+def _within_thresholds(rp, rl, max_reproj_error: float, max_line_error: float) -> tuple:
     with np.errstate(invalid="ignore"):
         return rp <= max_reproj_error, np.all(rl <= max_line_error, axis=1)
 
 
-def _weighted_refinement(p2d, p3d, l2, l3, pose, camera, conf: PointLinePoseConfig):
+def _weighted_refinement(p2d, p3d, l2, l3, pose, camera, conf: PointLinePoseConfig, residuals=None):
     """PoseLib's point+line refinement from ``pose`` over the inliers, each kind at the Cauchy scale of its own median
-    residual (at least ``conf.min_scale``, at most half its inlier threshold)."""
+    residual (at least ``conf.min_scale``, at most half its inlier threshold). ``residuals``: those of
+    :func:`pnpl_residuals` at ``pose``, when the caller has them."""
     import poselib
 
-    T = make_T(np.asarray(pose.R), np.asarray(pose.t))
-    rp, rl = pnpl_residuals(p2d, p3d, l2, l3, T, camera)
+    if residuals is None:
+        residuals = pnpl_residuals(p2d, p3d, l2, l3, make_T(np.asarray(pose.R), np.asarray(pose.t)), camera)
+    rp, rl = residuals
 
     def scale(r, thr):
         r = r[np.isfinite(r)]
