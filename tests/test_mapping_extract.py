@@ -183,16 +183,23 @@ def test_group_loss():
     assert group_loss(e, torch.tensor([0, 1, 2])).item() == 0.0
 
 
-def test_torch_raycaster_agrees_with_embree():
-    rng = np.random.default_rng(0)
+def _random_rects_and_rays(seed):
+    """60 random rectangles about 3 m in front of an identity camera, and 500 pixel rays (origins, directions)."""
+    from lipmap.mapping.assign import pixel_rays_world
+
+    rng = np.random.default_rng(seed)
     corners = np.stack(
         [rect(rng.uniform(-1, 1, 3) + [0, 0, 3], *rng.uniform(0.1, 0.5, 2), Rotation.random(random_state=i).as_matrix())
          for i in range(60)]
     )
     pix = np.stack([rng.integers(0, 320, 500), rng.integers(0, 240, 500)], 1)
-    from lipmap.mapping.assign import first_hit_torch, pixel_rays_world
+    return corners, *pixel_rays_world(pix, np.eye(4), CAM)
 
-    o, d = pixel_rays_world(pix, np.eye(4), CAM)
+
+def test_torch_raycaster_agrees_with_embree():
+    from lipmap.mapping.assign import first_hit_torch
+
+    corners, o, d = _random_rects_and_rays(0)
     k_e, t_e = PlaneRaycaster(corners).first_hit(o, d)
     k_t, t_t = first_hit_torch(torch.tensor(corners), torch.tensor(o), torch.tensor(d))
     assert (k_e >= 0).sum() > 50
@@ -202,15 +209,7 @@ def test_torch_raycaster_agrees_with_embree():
 
 
 def test_hit_distance_is_first_hits_without_the_hit_points():
-    rng = np.random.default_rng(1)
-    corners = np.stack(
-        [rect(rng.uniform(-1, 1, 3) + [0, 0, 3], *rng.uniform(0.1, 0.5, 2), Rotation.random(random_state=i).as_matrix())
-         for i in range(60)]
-    )
-    from lipmap.mapping.assign import pixel_rays_world
-
-    pix = np.stack([rng.integers(0, 320, 500), rng.integers(0, 240, 500)], 1)
-    o, d = pixel_rays_world(pix, np.eye(4), CAM)
+    corners, o, d = _random_rects_and_rays(1)
     caster = PlaneRaycaster(corners)
     k, t = caster.first_hit(o, d)
     h = caster.hit_distance(o, d)
