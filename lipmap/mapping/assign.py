@@ -134,8 +134,8 @@ class PlaneRaycaster:
 
     def hit_distance(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """(P, 3), (P, 3) -> the distance (P,) along each unit ray to its first hit (inf: miss): :meth:`first_hit`'s,
-        to float32 precision (embree's own hit parameter), without trimesh computing the hit points (a third of the
-        time of a visibility test)."""
+        to float32 precision (embree's own hit parameter), without trimesh computing the hit points, which took
+        longer than casting the rays."""
         scene = getattr(self._isect, "_scene", None)  # trimesh's embree wrapper; absent in the pure-python fallback
         if scene is None or len(origins) == 0:
             return self.first_hit(origins, dirs)[1]
