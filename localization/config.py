@@ -62,6 +62,9 @@ class LineRescueConfig:
     # a rescued pose's narrowing rounds are local refinements (``LocalizationConfig.strong_gates``) rather than
     # RANSAC's, which pulled such poses off as it pulls a start at the true pose (docs/localization.md, `-polish`)
     local_rounds: bool = True
+    # a rescued pose whose last narrowing round keeps fewer line inliers is no pose (the query fails with the reason):
+    # such poses were nearly all wrong (docs/localization.md, `-final-lines`). 0: every confirmed pose stands
+    min_final_lines: int = 20
 
 
 @dataclass
@@ -157,6 +160,7 @@ def check_config(conf: LocalizationConfig) -> LocalizationConfig:
         ("line_rescue.min_length_px", rc.min_length_px, _nonneg, ">= 0 px"),
         ("line_rescue.max_query_lines", rc.max_query_lines, _int(0), "an integer >= 0 (0: all)"),
         ("line_rescue.min_line_inliers", rc.min_line_inliers, _int(0), "an integer >= 0"),
+        ("line_rescue.min_final_lines", rc.min_final_lines, _int(0), "an integer >= 0 (0: off)"),
         ("line_rescue.max_iterations", rc.max_iterations, _int(1), "an integer >= 1"),
         ("line_rescue.max_point_error", rc.max_point_error, _pos, "> 0 px"),
         ("line_rescue.same_pose_m", rc.same_pose_m, _nonneg, ">= 0 m"),

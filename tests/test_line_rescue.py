@@ -341,8 +341,8 @@ def test_a_narrowing_round_that_jumps_beyond_max_line_step_is_not_taken(monkeypa
 
 
 def test_a_rescue_no_narrowing_round_confirms_is_no_pose(monkeypatch):
-    """A rescued start is a pose only once a narrowing round takes it (unconfirmed, they were nearly always wrong):
-    otherwise the query fails with the reason, instead of returning the rescue's guess as a pose."""
+    """A rescued start is a pose only once a narrowing round takes it with enough line inliers (otherwise they were
+    nearly always wrong): otherwise the query fails with the reason, instead of returning the rescue's guess."""
     import localization.query as Q
 
     T, ends, l2, pm = _scene(3)
@@ -353,6 +353,16 @@ def test_a_rescue_no_narrowing_round_confirms_is_no_pose(monkeypatch):
     rec, detail = Q.localize_matches(pm, l2, CAM, LineQuery(ends), LocalizationConfig())
     pl = rec["point+line"]
     assert not pl["success"] and pl["rescued"] and "not confirmed" in pl["reason"] and not detail["point_line_inliers"].any()
-    monkeypatch.setattr(Q, "refine_with_lines", lambda pm, l2, T, *a, **k: (T, {"line_idx": np.arange(7)},
-                                                                             np.ones(7, bool), True, None))
+    def rounds_keeping(n_inliers):
+        m = {"line_idx": np.arange(30), "lines2d": np.zeros((30, 2, 2)), "lines3d": np.zeros((30, 2, 3))}
+        return lambda pm, l2, T, *a, **k: (T, m, np.arange(30) < n_inliers, True, None)
+
+    # confirmed, but held by fewer line inliers than ``min_final_lines`` (20): still no pose, with the count
+    monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(19))
+    pl = Q.localize_matches(pm, l2, CAM, LineQuery(ends), LocalizationConfig())[0]["point+line"]
+    assert not pl["success"] and pl["rescued"] and "19 line inliers < 20" in pl["reason"]
+    monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(20))
     assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), LocalizationConfig())[0]["point+line"]["success"]
+    off = replace(LocalizationConfig(), line_rescue=LineRescueConfig(min_final_lines=0))
+    monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(7))
+    assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), off)[0]["point+line"]["success"]
