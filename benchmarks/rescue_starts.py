@@ -16,7 +16,8 @@ against the ground-truth pose, each row gives the share with:
   could do);
 * the chosen (highest-scoring) rescued pose within 5 cm, and the final point+line pose within 5 cm;
 
-and the starts per query. With ``--truth-start`` the true pose is one more start: what the rescue and the narrowing
+the starts per query, and the rescued poses that stood split by their last round's line inliers (fewer than 20 or
+not: how many, and the share within 5 cm; run with ``min_final_lines`` 0 to see them all). With ``--truth-start`` the true pose is one more start: what the rescue and the narrowing
 rounds make of a perfect start (the starts' share of the loss is the difference). Written to
 ``benchmarks/results/rescue-starts-<scene>-<method>-<N>[-<tag>].json``.
 """
@@ -35,8 +36,10 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 import results  # noqa: E402
 
+FINAL_LINES = 20  # the split of the rescued poses by their last round's line inliers (LineRescueConfig.min_final_lines)
 HEADER = ["scene", "line map", "point matches", "weak queries", "≥3 / ≥2 right point matches", "a start within 5 / 15 cm",
-          "some start's rescued pose within 5 cm", "chosen rescued pose within 5 cm", "final within 5 cm (median cm)", "starts per query"]
+          "some start's rescued pose within 5 cm", "chosen rescued pose within 5 cm", "final within 5 cm (median cm)", "starts per query",
+          f"rescued poses with < / >= {FINAL_LINES} line inliers: n (within 5 cm)"]
 
 
 def query_outcome(rec: dict, trace: list, T_gt: np.ndarray, camera, point_px: float) -> dict | None:
@@ -61,8 +64,10 @@ def query_outcome(rec: dict, trace: list, T_gt: np.ndarray, camera, point_px: fl
     scores = [t["score"] for t in ends]
     chosen = pnpl[int(np.argmax(scores))] if max(scores) >= 0 else np.inf
     final = rec["point+line"].get("cam_from_world")
+    pl = rec["point+line"]
     return {"right_points": right, "start_m": min(starts), "best_pnpl_m": min(pnpl), "chosen_pnpl_m": chosen,
-            "final_m": err(final), "starts": len(stage0)}
+            "final_m": err(final), "starts": len(stage0),
+            "final_lines": pl.get("n_line_inliers", 0) if pl.get("success") and pl.get("rescued") else -1}
 
 
 def summarize(outcomes: list) -> dict:
@@ -77,15 +82,26 @@ def summarize(outcomes: list) -> dict:
             "start_15cm": pct(col["start_m"] <= 0.15), "best_pnpl_5cm": pct(col["best_pnpl_m"] <= 0.05),
             "chosen_pnpl_5cm": pct(col["chosen_pnpl_m"] <= 0.05), "final_5cm": pct(col["final_m"] <= 0.05),
             "final_median_cm": float(100 * np.median(col["final_m"])),
-            "starts_per_query": float(np.mean(col["starts"]))}
+            "starts_per_query": float(np.mean(col["starts"])), **_by_final_lines(col)}
+
+
+def _by_final_lines(col: dict, cut: int = FINAL_LINES) -> dict:
+    """The rescued poses (those that stood) with fewer / at least ``cut`` line inliers in their last narrowing round:
+    how many, and the share of them within 5 cm."""
+    out = {}
+    for key, m in (("few", (col["final_lines"] >= 0) & (col["final_lines"] < cut)), ("many", col["final_lines"] >= cut)):
+        out[f"final_lines_{key}"] = int(m.sum())
+        out[f"final_lines_{key}_5cm"] = float(100 * np.mean(col["final_m"][m] <= 0.05)) if m.any() else 0.0
+    return out
 
 
 def row(scene: str, method: str, matches, s: dict) -> list:
     if not s["weak_queries"]:
-        return [scene, method, str(matches), "0", "", "", "", "", "", ""]
+        return [scene, method, str(matches), "0", "", "", "", "", "", "", ""]
     return [scene, method, str(matches), str(s["weak_queries"]), f"{s['right_points_ge3']:.0f} / {s['right_points_ge2']:.0f} %",
             f"{s['start_5cm']:.0f} / {s['start_15cm']:.0f} %", f"{s['best_pnpl_5cm']:.0f} %", f"{s['chosen_pnpl_5cm']:.0f} %",
-            f"{s['final_5cm']:.0f} % ({s['final_median_cm']:.2f})", f"{s['starts_per_query']:.1f}"]
+            f"{s['final_5cm']:.0f} % ({s['final_median_cm']:.2f})", f"{s['starts_per_query']:.1f}",
+            f"{s['final_lines_few']} ({s['final_lines_few_5cm']:.0f} %) / {s['final_lines_many']} ({s['final_lines_many_5cm']:.0f} %)"]
 
 
 def trace_scene(scene, points, lq, lines, conf, seeds, truth_start: bool = False) -> list:

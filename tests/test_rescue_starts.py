@@ -47,6 +47,11 @@ def test_trace_holds_every_start_and_the_outcome_is_checked_against_the_truth(so
     assert s["weak_queries"] == 2 and s["right_points_ge3"] == 50 and s["right_points_ge2"] == 100
     assert s["final_5cm"] == 50 and s["start_15cm"] == 50 and s["starts_per_query"] == 2
     assert bench.row("s", "lipmap", 10, s)[3:6] == ["2", "50 / 100 %", "0 / 50 %"]  # the near start is 7 cm off
+    # the rescued poses that stood, split by their last round's line inliers
+    assert o["final_lines"] == rec["point+line"]["n_line_inliers"] >= 20
+    s = bench.summarize([o, dict(o, final_lines=8, final_m=0.3), dict(o, final_lines=12), dict(o, final_lines=-1)])
+    assert (s["final_lines_few"], s["final_lines_few_5cm"], s["final_lines_many"]) == (2, 50, 1)
+    assert bench.row("s", "lipmap", 10, s)[-1] == "2 (50 %) / 1 (100 %)"
 
 
 def test_the_truth_as_a_start():
