@@ -137,7 +137,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     scene = load_scene(args.dataset, args.root, args.scene, pose_source=args.pose_source)
-    base = LocalizationConfig(max_point_matches=args.matches or None, map_method=args.method,
+    base = LocalizationConfig(max_point_matches=args.matches, map_method=args.method,
                               mapping=_mapping_conf(Namespace(preset=LocalizationConfig().mapping, keyframes=None)))
     points, _, lq, lines = eval_inputs(scene, args.out / args.dataset / args.scene, base)
     over = json.loads(args.config)
