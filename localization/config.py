@@ -62,8 +62,9 @@ class LineRescueConfig:
     # a rescued pose's narrowing rounds are local refinements (``LocalizationConfig.strong_gates``) rather than
     # RANSAC's, which pulled such poses off as it pulls a start at the true pose (docs/localization.md, `-polish`)
     local_rounds: bool = True
-    # a rescued pose whose last narrowing round keeps fewer line inliers is no pose (the query fails with the reason):
-    # such poses were nearly all wrong (docs/localization.md, `-final-lines`). 0: every confirmed pose stands
+    # a rescued pose whose last narrowing round keeps fewer line inliers is no pose: the point-only pose stands, narrowed
+    # as usual, or without one the query fails with the reason. Such poses were nearly all wrong (docs/localization.md,
+    # `-final-lines`). 0: every confirmed pose stands
     min_final_lines: int = 20
 
 

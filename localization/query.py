@@ -153,11 +153,17 @@ def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfi
         local = (rescued and rescue.local_rounds) or (
             not rescued and est["success"] and 0 < conf.strong_inliers <= est["n_inliers"])
         T, m, inliers, used_lines, pl_inl = refine_with_lines(pm, lines2d, T, camera, lq, conf, plconf, local)
+        if rescued and used_lines and int(inliers.sum()) < rescue.min_final_lines and est["success"]:
+            # the rescued pose is a guess (below); the point-only pose stands instead, narrowed as if no rescue ran
+            rescued, unconfirmed, plconf = False, False, replace(conf.point_line_pose, seed=conf.seed)
+            detail["point_line_inliers"] = detail["point_inliers"]
+            T, m, inliers, used_lines, pl_inl = refine_with_lines(pm, lines2d, est["cam_from_world"], camera, lq, conf,
+                                                                  plconf)
     if pl_inl is not None:
         detail["point_line_inliers"] = pl_inl
     t_line = (time.perf_counter() - t1) * 1000
-    # a rescued pose held by few lines is a guess: on the held-out split 3 of ~700 with fewer than 20 line inliers in
-    # their last round lay within 5 cm, against 87 % of those with 30 or more (docs/localization.md)
+    # a rescued pose held by few lines is a guess (on the held-out split nearly none with fewer than 20 line inliers
+    # in the last round lay within 5 cm; docs/localization.md): without a point-only pose, the query fails
     weakly_held = rescued and used_lines and int(inliers.sum()) < rescue.min_final_lines
     if T is None or (unconfirmed and not used_lines) or weakly_held:
         why = ("no pose from the point and line matches" if T is None else

@@ -225,6 +225,31 @@ def test_rescue_by_refinement_recovers_the_pose_and_tests_visibility_once_per_st
         assert len(calls) == 2  # one per start, not per stage
 
 
+def test_a_weakly_held_rescue_gives_way_to_the_point_only_pose(monkeypatch):
+    """A rescued pose whose last round keeps fewer than ``min_final_lines`` line inliers is dropped; a query with a
+    (weak) point-only pose then narrows from that pose as if no rescue had run."""
+    import localization.query as Q
+
+    T, ends, l2, pm = _scene(3, n_pts=8)
+    point_only = _off(T, 1, 0.2)
+    monkeypatch.setattr(Q, "estimate_pose_points", lambda *a, **k: {
+        "success": True, "cam_from_world": point_only, "n_inliers": 8, "inliers": np.ones(8, bool)})
+    monkeypatch.setattr(Q, "rescue_pose", lambda *a, **k: {"cam_from_world": _off(T, 40, 10), "inliers": np.ones(8, bool)})
+    m = {"line_idx": np.arange(30), "lines2d": np.zeros((30, 2, 2)), "lines3d": np.zeros((30, 2, 3))}
+    calls = []
+
+    def rounds(pm, l2, T0, camera, lq, conf, plconf, strong=False):
+        calls.append((T0, strong))
+        return (T0, m, np.arange(30) < 10, True, None) if len(calls) == 1 else (T, m, np.arange(30) < 25, True, None)
+
+    monkeypatch.setattr(Q, "refine_with_lines", rounds)
+    rec, detail = Q.localize_matches(pm, l2, CAM, LineQuery(ends), LocalizationConfig())
+    pl = rec["point+line"]
+    assert pl["success"] and not pl["rescued"] and pl["n_line_inliers"] == 25
+    assert len(calls) == 2 and calls[0][1] and calls[1][0] is point_only and not calls[1][1]
+    np.testing.assert_array_equal(np.array(pl["cam_from_world"]), T)
+
+
 def test_ransac_rescue_refines_each_kept_pose_without_ransac_and_picks_by_the_last_stage(monkeypatch):
     """One PnPL RANSAC per start; the later gates refine each kept pose (no more RANSAC), and the best score at the
     last gate wins: the useless start's pose, kept or not, loses to the near one's."""
