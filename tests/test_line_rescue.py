@@ -243,7 +243,8 @@ def test_a_weakly_held_rescue_gives_way_to_the_point_only_pose(monkeypatch):
         return (T0, m, np.arange(30) < 10, True, None) if len(calls) == 1 else (T, m, np.arange(30) < 25, True, None)
 
     monkeypatch.setattr(Q, "refine_with_lines", rounds)
-    rec, detail = Q.localize_matches(pm, l2, CAM, LineQuery(ends), LocalizationConfig())
+    conf = replace(LocalizationConfig(), line_rescue=LineRescueConfig(min_final_lines=20))
+    rec, detail = Q.localize_matches(pm, l2, CAM, LineQuery(ends), conf)
     pl = rec["point+line"]
     assert pl["success"] and not pl["rescued"] and pl["n_line_inliers"] == 25
     assert len(calls) == 2 and calls[0][1] and calls[1][0] is point_only and not calls[1][1]
@@ -382,12 +383,12 @@ def test_a_rescue_no_narrowing_round_confirms_is_no_pose(monkeypatch):
         m = {"line_idx": np.arange(30), "lines2d": np.zeros((30, 2, 2)), "lines3d": np.zeros((30, 2, 3))}
         return lambda pm, l2, T, *a, **k: (T, m, np.arange(30) < n_inliers, True, None)
 
-    # confirmed, but held by fewer line inliers than ``min_final_lines`` (20): still no pose, with the count
+    # confirmed, but held by fewer line inliers than ``min_final_lines``: still no pose, with the count
+    held = replace(LocalizationConfig(), line_rescue=LineRescueConfig(min_final_lines=20))
     monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(19))
-    pl = Q.localize_matches(pm, l2, CAM, LineQuery(ends), LocalizationConfig())[0]["point+line"]
+    pl = Q.localize_matches(pm, l2, CAM, LineQuery(ends), held)[0]["point+line"]
     assert not pl["success"] and pl["rescued"] and "19 line inliers < 20" in pl["reason"]
     monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(20))
+    assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), held)[0]["point+line"]["success"]
+    monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(7))  # off by default: every confirmed pose stands
     assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), LocalizationConfig())[0]["point+line"]["success"]
-    off = replace(LocalizationConfig(), line_rescue=LineRescueConfig(min_final_lines=0))
-    monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(7))
-    assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), off)[0]["point+line"]["success"]
