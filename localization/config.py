@@ -137,6 +137,7 @@ def check_config(conf: LocalizationConfig) -> LocalizationConfig:
         ("point_line_pose.min_scale", plp.min_scale, _pos, "> 0 px"),
         ("point_line_pose.line_scale_factor", plp.line_scale_factor, _pos, "> 0"),
         ("point_line_pose.refine_iterations", plp.refine_iterations, _int(1), "an integer >= 1"),
+        ("point_line_pose.refine_step_tol", plp.refine_step_tol, _pos, "> 0"),
         ("line_query.method", lq.method, lambda v: v in LINE_QUERY_METHODS, f"one of {', '.join(LINE_QUERY_METHODS)}"),
         ("line_query.max_angle_deg", lq.max_angle_deg, _pos, "> 0 degrees"),
         ("line_query.max_dist_px", lq.max_dist_px, _pos, "> 0 px"),

@@ -181,9 +181,13 @@ class LineQuery:
         cos_gate = np.cos(np.radians(conf.max_angle_deg))
         with np.errstate(invalid="ignore"):  # NaN projections (behind the camera) pass no test
             # gates a hair wider than the float64 ones below, which decide
+            # one (Q, P) buffer for both products, worked in place: fresh matrices cost a third of the time
             mid32 = (0.5 * (qs[:, 0] + qs[:, 1])).astype(np.float32)
-            m = np.abs(mid32 @ nrm.T.astype(np.float32) - off.astype(np.float32)) <= np.float32(conf.max_dist_px + 1e-3)
-            m &= np.abs(dq.astype(np.float32) @ dp.T.astype(np.float32)) >= np.float32(cos_gate - 1e-5)
+            buf = mid32 @ nrm.T.astype(np.float32)
+            buf -= off.astype(np.float32)
+            m = np.abs(buf, out=buf) <= np.float32(conf.max_dist_px + 1e-3)
+            np.matmul(dq.astype(np.float32), dp.T.astype(np.float32), out=buf)
+            m &= np.abs(buf, out=buf) >= np.float32(cos_gate - 1e-5)
         qi, pj = np.divmod(np.flatnonzero(m), m.shape[1])  # np.nonzero's (qi, pj) order, 10x faster on (Q, P)
         cos = np.abs((dq[qi] * dp[pj]).sum(1))
         d0 = np.abs((qs[qi, 0] * nrm[pj]).sum(1) - off[pj])
