@@ -99,6 +99,18 @@ class TestProjectSegments:
         np.testing.assert_allclose(out[0], [[0.0, 20.0], [20.0, 40.0]])
         np.testing.assert_allclose(out[2], s[2])
 
+    def test_segments_in_image_agrees_with_clipping(self):
+        rng = np.random.default_rng(0)
+        s = rng.uniform(-60, 160, (20000, 2, 2))
+        s[:2000, 1] = s[:2000, 0]  # points
+        s[2000:3000, :, 0] = rng.choice([0.0, 100.0, -1.0, 101.0], (1000, 1))  # vertical, on or beside the borders
+        s[3000:4000, :, 1] = rng.choice([0.0, 40.0, -1.0, 41.0], (1000, 1))  # horizontal
+        s[4000:4100] = np.nan
+        _, valid = G.clip_segments_to_image(np.nan_to_num(s, nan=-1e9), 100, 40)
+        inside = G.segments_in_image(s, 100, 40)
+        assert 0.2 < inside.mean() < 0.8 and not inside[4000:4100].any()
+        np.testing.assert_array_equal(inside, valid)
+
 
 class TestSegmentMeasures:
     def test_angle(self):
