@@ -153,8 +153,9 @@ def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfi
         local = (rescued and rescue.local_rounds) or (
             not rescued and est["success"] and 0 < conf.strong_inliers <= est["n_inliers"])
         T, m, inliers, used_lines, pl_inl = refine_with_lines(pm, lines2d, T, camera, lq, conf, plconf, local)
-        if rescued and used_lines and int(inliers.sum()) < rescue.min_final_lines and est["success"]:
-            # the rescued pose is a guess (below); the point-only pose stands instead, narrowed as if no rescue ran
+        if rescued and est["success"] and (not used_lines or int(inliers.sum()) < rescue.min_final_lines):
+            # a rescued pose no narrowing round confirms, or few lines hold, is a guess (below); the point-only pose
+            # stands instead, narrowed as if no rescue ran
             rescued, unconfirmed, plconf = False, False, replace(conf.point_line_pose, seed=conf.seed)
             detail["point_line_inliers"] = detail["point_inliers"]
             T, m, inliers, used_lines, pl_inl = refine_with_lines(pm, lines2d, est["cam_from_world"], camera, lq, conf,

@@ -225,9 +225,10 @@ def test_rescue_by_refinement_recovers_the_pose_and_tests_visibility_once_per_st
         assert len(calls) == 2  # one per start, not per stage
 
 
-def test_a_weakly_held_rescue_gives_way_to_the_point_only_pose(monkeypatch):
-    """A rescued pose whose last round keeps fewer than ``min_final_lines`` line inliers is dropped; a query with a
-    (weak) point-only pose then narrows from that pose as if no rescue had run."""
+@pytest.mark.parametrize("case", ["weakly held", "unconfirmed"])
+def test_a_rescue_that_is_a_guess_gives_way_to_the_point_only_pose(monkeypatch, case):
+    """A rescued pose whose last round keeps fewer than ``min_final_lines`` line inliers, or that no narrowing round
+    confirms, is dropped; a query with a (weak) point-only pose then narrows from that pose as if no rescue had run."""
     import localization.query as Q
 
     T, ends, l2, pm = _scene(3, n_pts=8)
@@ -240,10 +241,12 @@ def test_a_weakly_held_rescue_gives_way_to_the_point_only_pose(monkeypatch):
 
     def rounds(pm, l2, T0, camera, lq, conf, plconf, strong=False):
         calls.append((T0, strong))
-        return (T0, m, np.arange(30) < 10, True, None) if len(calls) == 1 else (T, m, np.arange(30) < 25, True, None)
+        if len(calls) > 1:
+            return T, m, np.arange(30) < 25, True, None
+        return (T0, m, np.arange(30) < 10, True, None) if case == "weakly held" else (T0, None, None, False, None)
 
     monkeypatch.setattr(Q, "refine_with_lines", rounds)
-    conf = replace(LocalizationConfig(), line_rescue=LineRescueConfig(min_final_lines=20))
+    conf = replace(LocalizationConfig(), line_rescue=LineRescueConfig(min_final_lines=20 if case == "weakly held" else 0))
     rec, detail = Q.localize_matches(pm, l2, CAM, LineQuery(ends), conf)
     pl = rec["point+line"]
     assert pl["success"] and not pl["rescued"] and pl["n_line_inliers"] == 25
