@@ -156,8 +156,8 @@ def check_config(conf: LocalizationConfig) -> LocalizationConfig:
         ("line_rescue.gates", rc.gates, lambda v: len(v) >= 1 and all(len(g) in (2, 3) and _pos(g[0]) and _pos(g[1])
                                                        and (len(g) == 2 or _int(1)(g[2])) for g in v),
          "one or more (px > 0, deg > 0[, candidates >= 1]) stages"),
-        ("line_rescue.refine_gates", rc.refine_gates, lambda v: all(len(g) in (2, 3) and _pos(g[0]) and _pos(g[1]) for g in v),
-         "(px > 0, deg > 0[, candidates]) per stage"),
+        ("line_rescue.refine_gates", rc.refine_gates, lambda v: len(v) >= 1 and all(len(g) in (2, 3) and _pos(g[0]) and _pos(g[1]) for g in v),
+         "one or more (px > 0, deg > 0[, candidates]) stages"),
         ("line_rescue.candidates", rc.candidates, _int(1), "an integer >= 1"),
         ("line_rescue.min_length_px", rc.min_length_px, _nonneg, ">= 0 px"),
         ("line_rescue.max_query_lines", rc.max_query_lines, _int(0), "an integer >= 0 (0: all)"),

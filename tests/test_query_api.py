@@ -209,6 +209,8 @@ class TestConfig:
         (LocalizationConfig(max_line_step=(0.3,)), "max_line_step"),
         (LocalizationConfig(strong_gates=()), "strong_gates"),
         (LocalizationConfig(line_rescue=LineRescueConfig(gates=())), "line_rescue.gates"),
+        (LocalizationConfig(line_rescue=LineRescueConfig(solver="refine", refine_gates=())), "line_rescue.refine_gates"),
+        (LocalizationConfig(point_line_pose=PointLinePoseConfig(refine_step_tol=0)), "refine_step_tol"),
         (LocalizationConfig(strong_inliers=-1), "strong_inliers"),
     ])
     def test_a_field_a_localizer_cannot_honour_is_refused(self, conf, field):
