@@ -393,5 +393,10 @@ def test_a_rescue_no_narrowing_round_confirms_is_no_pose(monkeypatch):
     assert not pl["success"] and pl["rescued"] and "19 line inliers < 20" in pl["reason"]
     monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(20))
     assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), held)[0]["point+line"]["success"]
-    monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(7))  # off by default: every confirmed pose stands
-    assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), LocalizationConfig())[0]["point+line"]["success"]
+    default = LocalizationConfig()  # 6, the rescue's own bar
+    monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(6))
+    assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), default)[0]["point+line"]["success"]
+    monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(5))
+    assert not Q.localize_matches(pm, l2, CAM, LineQuery(ends), default)[0]["point+line"]["success"]
+    off = replace(LocalizationConfig(), line_rescue=LineRescueConfig(min_final_lines=0))
+    assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), off)[0]["point+line"]["success"]
