@@ -176,6 +176,7 @@ def check_config(conf: LocalizationConfig) -> LocalizationConfig:
         ("line_rescue.hypotheses.n_map_lines", hc.n_map_lines, _int(1), "an integer >= 1"),
         ("line_rescue.hypotheses.min_support", hc.min_support, _int(0), "an integer >= 0 images"),
         ("line_rescue.hypotheses.max_dist_px", hc.max_dist_px, _pos, "> 0 px"),
+        ("line_rescue.hypotheses.angle_bins", hc.angle_bins, lambda v: _int(1)(v) and v <= 64, "an integer in [1, 64]"),
         ("line_rescue.hypotheses.min_agree", hc.min_agree, lambda v: 0 <= v <= 1, "in [0, 1]"),
         ("line_rescue.hypotheses.lines_first.below", hc.lines_first.below, _int(0), "an integer >= 0 (0: never)"),
         ("line_rescue.hypotheses.lines_first.views", hc.lines_first.views, _int(0), "an integer >= 0"),

@@ -38,9 +38,10 @@ class HypothesisConfig:
     angle_bins: int = 8  # direction bins over 180 deg; a detection also counts in the bin next to its angle
     min_agree: float = 0.8  # share of a line's samples that must agree
     keep: int = 3  # best hypotheses handed on
-    # a first pass scores every hypothesis with the ``coarse_lines`` longest lines and only its ``coarse_keep`` best go
-    # on to all ``n_map_lines`` (the scoring is the cost of this step); 0: one pass
-    coarse_lines: int = 300
+    # > 0: a first pass scores every hypothesis with the ``coarse_lines`` longest lines and only its ``coarse_keep``
+    # best go on to all ``n_map_lines``. 0 (one pass over all): a hypothesis some cm off lays few of the longest
+    # lines within max_dist_px, and the first pass lost it (held-out split, 5 matches: 46 -> 52 % within 5 cm)
+    coarse_lines: int = 0
     coarse_keep: int = 10
     min_length_px: float = 20.0  # shorter detections and projections are left out (as the line query)
     box_margin: float = 0.5  # m: a hypothesis' camera lies within the map lines' box grown by this
@@ -243,9 +244,50 @@ class LineEvidence:
             sel = np.flatnonzero((own == b) | (nxt == b))
             if len(sel):
                 cv2.polylines(self.near[b], list(pts[sel]), False, 1, thick, cv2.LINE_8, 4)
+        # the masks as one bit per bin, with a pixel of border that samples outside the image land on
+        self.bits = np.zeros((camera.height + 2, camera.width + 2), np.min_scalar_type(2 ** B - 1))
+        for b in range(B):
+            self.bits[1:-1, 1:-1] |= self.near[b].astype(self.bits.dtype) << b
 
     def score(self, poses: np.ndarray, lines3d: np.ndarray) -> np.ndarray:
-        """:math:`(H,)` number of ``lines3d`` :math:`(L, 2, 3)` that each pose :math:`(H, 4, 4)` lays on detections."""
+        """:math:`(H,)` number of ``lines3d`` :math:`(L, 2, 3)` that each pose :math:`(H, 4, 4)` lays on detections.
+
+        The same counts as :meth:`score_reference`, about 3x faster: only the endpoints are projected for every pose
+        and line, and the samples only of the lines that land in the image, in front and long enough (projection is
+        linear in homogeneous coordinates, so a sample's is the interpolation of its endpoints'); one bit per
+        direction bin in one table."""
+        c, cam = self.conf, self.camera
+        L = len(lines3d)
+        if L == 0 or len(poses) == 0:
+            return np.zeros(len(poses), np.int64)
+        Xh = np.concatenate([np.asarray(lines3d, float).reshape(-1, 3), np.ones((2 * L, 1))], 1).astype(np.float32)
+        # one float32 product with K [R | t] per pose: pixels to within 1e-3 px
+        uvw = (Xh @ geo.projection_matrices(poses, cam).astype(np.float32).transpose(0, 2, 1)).reshape(len(poses), L, 2, 3)
+        z0, z1 = uvw[:, :, 0, 2], uvw[:, :, 1, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u0, v0, u1, v1 = uvw[:, :, 0, 0] / z0, uvw[:, :, 0, 1] / z0, uvw[:, :, 1, 0] / z1, uvw[:, :, 1, 1] / z1
+            du, dv = u1 - u0, v1 - v0
+            # a pose far from the scene sees it small: short projections land on detections by chance
+            keep = (z0 > 0) & (z1 > 0) & (np.hypot(du, dv) >= c.min_length_px)
+            if c.min_agree > 0:  # a line whose endpoints' box misses the image has no sample in it
+                keep &= (np.maximum(u0, u1) >= 0) & (np.minimum(u0, u1) < cam.width)
+                keep &= (np.maximum(v0, v1) >= 0) & (np.minimum(v0, v1) < cam.height)
+        h, k = np.nonzero(keep)
+        t = np.linspace(0.1, 0.9, c.samples).astype(np.float32)
+        w0, w1 = uvw[h, k, 0], uvw[h, k, 1]
+        w = w0[:, None] + t[None, :, None] * (w1 - w0)[:, None]  # (K, S, 3)
+        b = (np.floor(np.mod(np.arctan2(dv[h, k], du[h, k]), np.pi) / (np.pi / c.angle_bins)).astype(np.int64)
+             % c.angle_bins).astype(np.uint8)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            # fmin / fmax send NaN to the table's border, as they do samples outside the image
+            ui = np.fmax(np.fmin(w[..., 0] / w[..., 2] + 1, np.float32(cam.width + 1)), 0).astype(np.intp)
+            vi = np.fmax(np.fmin(w[..., 1] / w[..., 2] + 1, np.float32(cam.height + 1)), 0).astype(np.intp)
+        hits = ((self.bits[vi, ui] >> b[:, None].astype(self.bits.dtype)) & 1).sum(-1)
+        return np.bincount(h[hits / c.samples >= c.min_agree], minlength=len(poses)).astype(np.int64)
+
+    def score_reference(self, poses: np.ndarray, lines3d: np.ndarray) -> np.ndarray:
+        """:meth:`score` as plainly as it reads: every sample of every line projected under every pose, looked up in
+        its direction bin's mask."""
         c, cam = self.conf, self.camera
         L = len(lines3d)
         if L == 0 or len(poses) == 0:

@@ -133,6 +133,27 @@ def test_lines_score_the_true_pose_above_wrong_ones():
     assert poses and pose_errors(T, poses[0])[0] < 1e-6
 
 
+@pytest.mark.parametrize("bins", [8, 12])
+def test_line_scores_agree_with_the_reference(bins):
+    """The fast score (endpoints for all, samples only where a line lands in the image) gives the reference's
+    counts, for poses at, near and far from the truth, turned away (lines behind the camera), or at the map
+    (a line through the camera's plane); with 12 bins the bit table is 16 bits wide."""
+    from localization.hypotheses import HypothesisConfig, LineEvidence
+
+    T, ends, l2, _ = _scene(5, n_lines=80)
+    rng = np.random.default_rng(1)
+    poses = [T] + [_off(T, cm, deg) for cm, deg in [(1, 0.2), (3, 1), (10, 3), (40, 10)]]
+    poses += [make_T(Rotation.from_euler("y", a, degrees=True).as_matrix() @ T[:3, :3], T[:3, 3]) for a in (60, 100, 180)]
+    poses += [make_T(T[:3, :3], T[:3, 3] + [0, 0, -3.0]), make_T(T[:3, :3], T[:3, 3] + rng.normal(0, 1, 3))]
+    poses = np.stack(poses)
+    for conf in (HypothesisConfig(angle_bins=bins), HypothesisConfig(angle_bins=bins, min_agree=0.4, samples=3)):
+        ev = LineEvidence(l2, CAM, conf)
+        fast, ref = ev.score(poses, ends), ev.score_reference(poses, ends)
+        np.testing.assert_array_equal(fast, ref)
+        assert fast[0] >= 0.8 * len(ends) and fast[-3:-1].min() < fast[0]
+    assert ev.score(poses[:0], ends).shape == (0,) and np.all(ev.score(poses, ends[:0]) == 0)
+
+
 def test_line_evidence_masks_hold_the_pixels_near_detections():
     """The per-direction masks hold every pixel centre within max_dist_px of a detection of that direction bin,
     and hardly any beyond (exact point-segment distances)."""

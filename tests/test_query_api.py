@@ -13,6 +13,7 @@ from lipmap.poses import make_T, pose_errors
 from localization import (LineRescueConfig, LocalizationConfig, Localizer, PointLinePoseConfig,
                           estimate_pose_point_line)
 from localization.cameras import as_query_camera
+from localization.hypotheses import HypothesisConfig
 
 W, H, F, CX, CY = 640, 480, 525.0, 320.0, 240.0
 PINHOLE = {"model": "PINHOLE", "width": W, "height": H, "params": [F, F, CX, CY]}
@@ -212,6 +213,7 @@ class TestConfig:
         (LocalizationConfig(line_rescue=LineRescueConfig(solver="refine", refine_gates=())), "line_rescue.refine_gates"),
         (LocalizationConfig(point_line_pose=PointLinePoseConfig(refine_step_tol=0)), "refine_step_tol"),
         (LocalizationConfig(strong_inliers=-1), "strong_inliers"),
+        (LocalizationConfig(line_rescue=LineRescueConfig(hypotheses=HypothesisConfig(angle_bins=65))), "angle_bins"),
     ])
     def test_a_field_a_localizer_cannot_honour_is_refused(self, conf, field):
         _, _, ends = _scene(0)
