@@ -272,17 +272,18 @@ class LineEvidence:
             if c.min_agree > 0:  # a line whose endpoints' box misses the image has no sample in it
                 keep &= (np.maximum(u0, u1) >= 0) & (np.minimum(u0, u1) < cam.width)
                 keep &= (np.maximum(v0, v1) >= 0) & (np.minimum(v0, v1) < cam.height)
-        h, k = np.nonzero(keep)
-        t = np.linspace(0.1, 0.9, c.samples).astype(np.float32)
-        w0, w1 = uvw[h, k, 0], uvw[h, k, 1]
-        w = w0[:, None] + t[None, :, None] * (w1 - w0)[:, None]  # (K, S, 3)
-        b = (np.floor(np.mod(np.arctan2(dv[h, k], du[h, k]), np.pi) / (np.pi / c.angle_bins)).astype(np.int64)
-             % c.angle_bins).astype(np.uint8)
+        idx = np.flatnonzero(keep)
+        h = idx // L
+        e = uvw.reshape(-1, 6)[idx]  # (K, 6): both endpoints' homogeneous pixels
+        t = np.linspace(0.1, 0.9, c.samples).astype(np.float32)[None]
+        x, y, w = (e[:, j, None] + t * (e[:, 3 + j, None] - e[:, j, None]) for j in range(3))  # (K, S) each
+        b = (np.floor(np.mod(np.arctan2(dv.ravel()[idx], du.ravel()[idx]), np.pi) / (np.pi / c.angle_bins))
+             .astype(np.int64) % c.angle_bins).astype(self.bits.dtype)
         with np.errstate(divide="ignore", invalid="ignore"):
             # fmin / fmax send NaN to the table's border, as they do samples outside the image
-            ui = np.fmax(np.fmin(w[..., 0] / w[..., 2] + 1, np.float32(cam.width + 1)), 0).astype(np.intp)
-            vi = np.fmax(np.fmin(w[..., 1] / w[..., 2] + 1, np.float32(cam.height + 1)), 0).astype(np.intp)
-        hits = ((self.bits[vi, ui] >> b[:, None].astype(self.bits.dtype)) & 1).sum(-1)
+            ui = np.fmax(np.fmin(x / w + 1, np.float32(cam.width + 1)), 0).astype(np.intp)
+            vi = np.fmax(np.fmin(y / w + 1, np.float32(cam.height + 1)), 0).astype(np.intp)
+        hits = ((self.bits[vi, ui] >> b[:, None]) & 1).sum(-1)
         return np.bincount(h[hits / c.samples >= c.min_agree], minlength=len(poses)).astype(np.int64)
 
     def score_reference(self, poses: np.ndarray, lines3d: np.ndarray) -> np.ndarray:
