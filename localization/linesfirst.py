@@ -145,20 +145,25 @@ def voted_translations(R: np.ndarray, p2d: np.ndarray, p3d: np.ndarray, segments
     qi, li = np.nonzero(same)
     if len(qi) == 0:
         return []
-    RX = lines3d[li, 0] @ R.T  # a point of each paired map line, rotated
+    RL = lines3d @ R.T  # the map lines' ends, rotated (L, 2, 3): a pair's camera-frame ends are these minus R C
     nq = normals[qi]
+    nRX = (nq * RL[li, 0]).sum(1)  # n . R X for a point X of each paired map line
+    s0, sd, sl = _segment_frames(segments)
     bearings = geo.unproject_points(np.asarray(p2d, dtype=float).reshape(-1, 2), 1.0, camera)
     bearings /= np.linalg.norm(bearings, axis=1, keepdims=True)
     lo, hi = conf.depth_range
     nbins = int(np.ceil((hi - lo) / conf.depth_bin))
     poses = []
     for b, X in zip(bearings, np.asarray(p3d, dtype=float).reshape(-1, 3)):
+        RXp = R @ X
         nb = nq @ b
         ok = np.abs(nb) > 0.05  # the point's ray almost in the line's plane: no depth
-        depth = (nq[ok] * (R @ X - RX[ok])).sum(1) / nb[ok]
+        depth = (nq[ok] @ RXp - nRX[ok]) / nb[ok]
         inr = (depth > lo) & (depth < hi)
         pq, pl = qi[ok][inr], li[ok][inr]
-        inr[inr] = seen_alike(R, X - depth[inr, None] * (R.T @ b), lines3d[pl], segments[pq], camera, conf)
+        # the camera centre C = X - depth R^T b, so R (E - C) = R E - R X + depth b for a map line's end E
+        Y = RL[pl] - (RXp - depth[inr, None] * b)[:, None]
+        inr[inr] = _alike(Y, s0[pq], sd[pq], sl[pq], camera, conf)
         if not inr.any():
             continue
         hist = _votes(((depth[inr] - lo) / conf.depth_bin).astype(np.int64), qi[ok][inr], weights, nbins)
@@ -179,16 +184,25 @@ def seen_alike(R: np.ndarray, centres: np.ndarray, ends3d: np.ndarray, segments:
     """Whether each 3D segment :math:`(P, 2, 3)`, seen from its camera centre :math:`(P, 3)` with rotation ``R``, can be
     the detected segment :math:`(P, 4)`: both ends in front within the depth range, projected at least
     ``conf.min_projected_share`` of the detection's length, and overlapping the detection along its direction."""
-    Y = (ends3d - centres[:, None]) @ R.T  # (P, 2, 3)
+    return _alike((ends3d - centres[:, None]) @ R.T, *_segment_frames(segments), camera, conf)
+
+
+def _segment_frames(segments: np.ndarray) -> tuple:
+    """First ends (M, 2), unit directions (M, 2) and lengths (M,) of the 2D segments (M, 4)."""
+    s = np.asarray(segments, dtype=float).reshape(-1, 2, 2)
+    d = s[:, 1] - s[:, 0]
+    ln = np.linalg.norm(d, axis=1)
+    return s[:, 0], d / np.maximum(ln, 1e-9)[:, None], ln
+
+
+def _alike(Y: np.ndarray, s0: np.ndarray, d: np.ndarray, ln: np.ndarray, camera, conf: LinesFirstConfig) -> np.ndarray:
+    """:func:`seen_alike` of the 3D segments' ends in the camera frame :math:`(P, 2, 3)` and the detections' frames
+    (:func:`_segment_frames`, one row per segment)."""
     z = Y[..., 2]
     ahead = (z.min(1) > conf.depth_range[0]) & (z.max(1) < conf.depth_range[1])
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = Y[..., :2] / z[..., None] * [camera.fx, camera.fy] + [camera.cx, camera.cy]  # (P, 2, 2)
-    s = np.asarray(segments, dtype=float).reshape(-1, 2, 2)
-    d = s[:, 1] - s[:, 0]
-    ln = np.linalg.norm(d, axis=1)
-    d = d / np.maximum(ln, 1e-9)[:, None]
-    a = ((uv - s[:, :1]) * d[:, None]).sum(-1)  # the projected ends along the detection, 0 at its first end
+    a = ((uv - s0[:, None]) * d[:, None]).sum(-1)  # the projected ends along the detection, 0 at its first end
     long_enough = np.abs(a[:, 1] - a[:, 0]) >= conf.min_projected_share * ln
     overlap = (np.maximum(a[:, 0], a[:, 1]) > 0) & (np.minimum(a[:, 0], a[:, 1]) < ln)
     with np.errstate(invalid="ignore"):

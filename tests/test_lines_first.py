@@ -166,3 +166,23 @@ def test_the_benchmark_loop_starts_the_lines_from_the_retrieved_images(room):
     off = replace(conf, line_rescue=replace(conf.line_rescue, hypotheses=replace(
         conf.line_rescue.hypotheses, lines_first=replace(conf.line_rescue.hypotheses.lines_first, views=0))))
     assert not localize_query("q", CAM, Source(["db"]), seen, LineQuery(room["lines"]), off)["point+line"]["success"]
+
+
+def test_seen_alike_from_rotated_ends_agrees_with_the_world_frame():
+    """voted_translations tests its pairs from the map lines' ends rotated once per rotation (``_alike``); that is
+    seen_alike's answer from the world frame, on random segments and centres in and out of view."""
+    from localization.linesfirst import _alike, _segment_frames, seen_alike
+
+    rng = np.random.default_rng(3)
+    R = Rotation.random(random_state=4).as_matrix()
+    P = 2000
+    centres = rng.uniform(-1, 1, (P, 3))
+    # ends in front of the camera at 0.2-9 m (some outside the depth range), in world coordinates
+    Y = np.concatenate([rng.uniform(-2, 2, (P, 2, 2)), rng.uniform(0.2, 9, (P, 2, 1))], -1)
+    ends = Y @ R + centres[:, None]
+    segments = rng.uniform(0, 640, (P, 4))
+    conf = LinesFirstConfig()
+    want = seen_alike(R, centres, ends, segments, CAM, conf)
+    got = _alike((ends @ R.T) - (centres @ R.T)[:, None], *_segment_frames(segments), CAM, conf)
+    assert 0.05 < want.mean() < 0.95  # both answers occur
+    np.testing.assert_array_equal(got, want)
