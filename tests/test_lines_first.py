@@ -186,3 +186,26 @@ def test_seen_alike_from_rotated_ends_agrees_with_the_world_frame():
     got = _alike((ends @ R.T) - (centres @ R.T)[:, None], *_segment_frames(segments), CAM, conf)
     assert 0.05 < want.mean() < 0.95  # both answers occur
     np.testing.assert_array_equal(got, want)
+
+
+def test_ten_matches_with_one_right_get_their_pose_from_the_lines(room):
+    """With 10 matches of which one is right, neither P3P (three right) nor the two-point poses (two) can hold the pose;
+    the lines-first poses along the right match's ray do, and they now join below 11 matches (not 6)."""
+    from dataclasses import replace
+
+    from localization.hypotheses import line_verified_poses
+
+    T, seen = room["T"], room["seen"]
+    rng = np.random.default_rng(7)
+    p2d, p3d = room["pts"]
+    w2d, w3d = _points(T, 10, rng)
+    p2d = np.concatenate([p2d[:1], w2d[:9]])
+    p3d = np.concatenate([p3d[:1], np.roll(w3d, 1, axis=0)[:9]])  # each wrong pixel paired with another point
+    conf = HypothesisConfig()
+    assert conf.lines_first.below > 10
+    poses = line_verified_poses(p2d, p3d, seen, room["lines"], CAM, conf, views=[_view(T)])
+    dt, dr = pose_errors(poses[0], T)
+    assert dt < 0.05 and dr < 1.0, (dt, dr)
+    old = line_verified_poses(p2d, p3d, seen, room["lines"], CAM, replace(conf, lines_first=LinesFirstConfig(below=6)),
+                              views=[_view(T)])
+    assert all(pose_errors(P, T)[0] > 0.05 for P in old)
