@@ -27,7 +27,7 @@ from lipmap import geometry as geo
 class LinesFirstConfig:
     # a query with fewer point matches than this also gets poses from lines (0: never). With ten matches P3P's
     # triples of right ones lie tens of cm off as often as not (their points' noise), and these poses still find
-    # the room (held-out split, 10 matches: per query 43 better / 16 worse than from P3P alone; docs/localization.md)
+    # the room (held-out split, 10 matches: per query 43 better / 16 worse than with them below 6; docs/localization.md)
     below: int = 11
     views: int = 3  # the retrieved images whose rotations place the vanishing points among the map's directions
     max_prior_deg: float = 30.0  # a vanishing point within this of a map direction under a view's rotation is that one
