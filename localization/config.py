@@ -16,6 +16,7 @@ from .hypotheses import HypothesisConfig
 from .linequery import LINE_QUERY_METHODS, LineQueryConfig
 
 RESCUE_SOLVERS = ("ransac", "refine")
+RESCUE_ROUNDS = ("confirm", "local", "ransac")
 
 
 @dataclass
@@ -29,8 +30,8 @@ class LineRescueConfig:
     ``prior_views`` best retrieved database images. From each, every query line takes its ``candidates`` nearest
     map lines within the wide gate (no ambiguity test), and PnPL's RANSAC over all point matches and these
     candidates picks a pose; each such pose is refined at the later ``gates`` without RANSAC, and the one with the
-    most point + line inliers at the last gate (at least ``min_line_inliers`` lines) narrows like a strong query's
-    (``local_rounds``), with ``max_point_error`` for the points.
+    most point + line inliers at the last gate (at least ``min_line_inliers`` lines) is the pose; the narrowing
+    rounds only confirm it (``rounds``), with ``max_point_error`` for the points.
     """
 
     weak_inliers: int = 20  # 0: off. Ten point matches are always weak; a full query (hundreds of inliers) never
@@ -59,9 +60,12 @@ class LineRescueConfig:
     solver: str = "ransac"
     refine_gates: tuple = ((30.0, 5.0, 1), (15.0, 3.0, 1), (8.0, 3.0, 1))
     refine_scale: float = 0.25  # the Cauchy scale of the lines in a refinement stage, times its gate (px)
-    # a rescued pose's narrowing rounds are local refinements (``LocalizationConfig.strong_gates``) rather than
-    # RANSAC's, which pulled such poses off as it pulls a start at the true pose (docs/localization.md, `-polish`)
-    local_rounds: bool = True
+    # what the narrowing rounds do with a rescued pose. "confirm": the pose stands; the line query at the last strong
+    # gate (``LocalizationConfig.strong_gates``) from it gives the line matches, and those within the line threshold
+    # there confirm it (``min_final_lines``). The rescue's last stage already refined it with each query line's nearest
+    # map line; moving it again made it worse (docs/localization.md, `-rounds`). "local": local refinements at the
+    # strong gates; "ransac": RANSAC rounds at the line gates, which pulled such poses off further (`-polish`)
+    rounds: str = "confirm"
     # a rescued pose whose last narrowing round keeps fewer line inliers is no pose: the point-only pose stands, narrowed
     # as usual, or without one the query fails with the reason. 6, the rescue's own bar (``min_line_inliers``), drops
     # only wrong poses on the held-out split; 20 drops nearly all of them but also right ones on the synthetic scenes,
@@ -170,6 +174,7 @@ def check_config(conf: LocalizationConfig) -> LocalizationConfig:
         ("line_rescue.same_pose_deg", rc.same_pose_deg, _nonneg, ">= 0 degrees"),
         ("line_rescue.solver", rc.solver, lambda v: v in RESCUE_SOLVERS, f"one of {', '.join(RESCUE_SOLVERS)}"),
         ("line_rescue.refine_scale", rc.refine_scale, _pos, "> 0"),
+        ("line_rescue.rounds", rc.rounds, lambda v: v in RESCUE_ROUNDS, f"one of {', '.join(RESCUE_ROUNDS)}"),
         ("line_rescue.hypotheses.keep", hc.keep, _int(0), "an integer >= 0 (0: off)"),
         ("line_rescue.hypotheses.max_triples", hc.max_triples, _int(1), "an integer >= 1"),
         ("line_rescue.hypotheses.max_point_error", hc.max_point_error, _pos, "> 0 px"),

@@ -329,7 +329,7 @@ def _pose_result(T, p2d, p3d, l2, l3, camera, max_reproj_error: float, max_line_
     is not finite)."""
     if not np.all(np.isfinite(T)):
         return {**fail, "reason": "refinement diverged"}
-    pt_inl, line_inl = _inliers_at(p2d, p3d, l2, l3, T, camera, max_reproj_error, max_line_error)
+    pt_inl, line_inl = inliers_at(p2d, p3d, l2, l3, T, camera, max_reproj_error, max_line_error)
     return {"cam_from_world": T, "success": bool(pt_inl.sum() + line_inl.sum() >= 4), "n_inliers": int(pt_inl.sum()),
             "n_line_inliers": int(line_inl.sum()), "line_inliers": line_inl, "inliers": pt_inl, "n_lines": len(l2)}
 
@@ -348,7 +348,7 @@ def pnpl_residuals(p2d, p3d, lines2d, lines3d, T: np.ndarray, camera) -> tuple:
     return rp, rl
 
 
-def _inliers_at(p2d, p3d, l2, l3, T, camera, max_reproj_error: float, max_line_error: float) -> tuple:
+def inliers_at(p2d, p3d, l2, l3, T, camera, max_reproj_error: float, max_line_error: float) -> tuple:
     """The points (N,) and lines (M,) within the thresholds at pose ``T`` (a line by both projected endpoints)."""
     return _within_thresholds(*pnpl_residuals(p2d, p3d, l2, l3, T, camera), max_reproj_error, max_line_error)
 

@@ -16,7 +16,7 @@ from lipmap import geometry as geo
 from lipmap.poses import pose_errors
 
 from .config import LocalizationConfig
-from .estimate import estimate_pose_points, local_pnpl_pose, pnpl_pose, refine_pnpl_pose, subsample_matches
+from .estimate import estimate_pose_points, inliers_at, local_pnpl_pose, pnpl_pose, refine_pnpl_pose, subsample_matches
 from .hypotheses import line_verified_poses
 from .linequery import LineQuery, LineQueryConfig, correct_line_matches
 
@@ -149,10 +149,13 @@ def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfi
     if line_matches is not None:
         T, m, inliers, used_lines, pl_inl = _pose_from_given_lines(pm, line_matches, T, camera, plconf)
     else:
-        # a rescued pose is already refined without RANSAC (rescue_pose); a RANSAC round would only pull it about
-        local = (rescued and rescue.local_rounds) or (
-            not rescued and est["success"] and 0 < conf.strong_inliers <= est["n_inliers"])
-        T, m, inliers, used_lines, pl_inl = refine_with_lines(pm, lines2d, T, camera, lq, conf, plconf, local)
+        if rescued and rescue.rounds == "confirm":
+            T, m, inliers, used_lines, pl_inl = confirm_with_lines(pm, lines2d, T, camera, lq, conf, plconf)
+        else:
+            # a rescued pose is already refined without RANSAC (rescue_pose); a RANSAC round would only pull it about
+            local = (rescued and rescue.rounds == "local") or (
+                not rescued and est["success"] and 0 < conf.strong_inliers <= est["n_inliers"])
+            T, m, inliers, used_lines, pl_inl = refine_with_lines(pm, lines2d, T, camera, lq, conf, plconf, local)
         if rescued and est["success"] and (not used_lines or int(inliers.sum()) < rescue.min_final_lines):
             # a rescued pose no narrowing round confirms, or few lines hold, is a guess (below); the point-only pose
             # stands instead, narrowed as if no rescue ran
@@ -217,6 +220,25 @@ def refine_with_lines(pm, lines2d, T, camera, lq: LineQuery, conf: LocalizationC
         T, m, inliers, used_lines = r["cam_from_world"], tried, r["line_inliers"], True
         pl_inl = np.asarray(r["inliers"], bool)
     return T, m, inliers, used_lines, pl_inl
+
+
+def confirm_with_lines(pm, lines2d, T, camera, lq: LineQuery, conf: LocalizationConfig, plconf) -> tuple:
+    """The lines that hold pose ``T`` without moving it: the line query at the last strong gate from ``T``, and the
+    matches and points within ``plconf``'s thresholds there. For a rescued pose, which the rescue's last stage
+    already refined.
+
+    Returns:
+        the tuple of :func:`refine_with_lines` with ``T`` itself; a round counts as taken when at least
+        ``plconf.min_lines`` line matches were found.
+    """
+    lconf = line_query_schedule(conf, strong=True)[-1]
+    visible = lq.visible_lines(T, camera, conf.line_query.occlusion_tol) if lconf.method == "projection" else None
+    m = lq.match(lines2d, T, camera, lconf, visible)
+    if len(m["line_idx"]) < plconf.min_lines:
+        return T, None, None, False, None
+    pt_inl, line_inl = inliers_at(pm.p2d, pm.p3d, m["lines2d"], m["lines3d"], T, camera, plconf.max_reproj_error,
+                                   plconf.max_line_error)
+    return T, m, line_inl, True, pt_inl
 
 
 def given_line_matches(lines2d, lines3d, line_ids=None) -> dict:

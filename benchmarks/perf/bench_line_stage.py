@@ -10,7 +10,8 @@ defaults while the parts of the line stage are timed:
 * ``hypotheses``: P3P poses of the point matches scored by the map lines (weak queries only);
 * ``rescue query`` / ``rescue PnPL``: the wide-gate line queries (with their visibility tests) and PoseLib's PnPL
   RANSAC (or, with ``solver="refine"``, its robust refinement) of each rescue start;
-* ``visibility``, ``narrow query``, ``narrow PnPL``: the narrowing rounds every query goes through.
+* ``visibility``, ``narrow query``, ``narrow PnPL``: the narrowing rounds every query goes through (a rescued
+  pose's round only queries the lines that confirm it: no PnPL).
 
 Per query the parts add up to its line stage (``line_stage_ms`` of the eval's records) up to the glue between them.
 Figures are medians over queries (rescued and not rescued apart), then the median of ``--runs`` runs; written to
