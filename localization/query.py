@@ -150,9 +150,10 @@ def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfi
         T, m, inliers, used_lines, pl_inl = _pose_from_given_lines(pm, line_matches, T, camera, plconf)
     else:
         if rescued and rescue.rounds == "confirm":
+            # the rescue's last stage refined the pose; tighter gates would move it farther from the truth more often
             T, m, inliers, used_lines, pl_inl = confirm_with_lines(pm, lines2d, T, camera, lq, conf, plconf)
         else:
-            # a rescued pose is already refined without RANSAC (rescue_pose); a RANSAC round would only pull it about
+            # a strong pose, or a rescued one with rounds="local", narrows without RANSAC, which only pulls it about
             local = (rescued and rescue.rounds == "local") or (
                 not rescued and est["success"] and 0 < conf.strong_inliers <= est["n_inliers"])
             T, m, inliers, used_lines, pl_inl = refine_with_lines(pm, lines2d, T, camera, lq, conf, plconf, local)
