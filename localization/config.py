@@ -67,9 +67,9 @@ class LineRescueConfig:
     # strong gates; "ransac": RANSAC rounds at the line gates, which pulled such poses off further (`-polish`)
     rounds: str = "confirm"
     # a rescued pose whose last narrowing round keeps fewer line inliers is no pose: the point-only pose stands, narrowed
-    # as usual, or without one the query fails with the reason. 6, the rescue's own bar (``min_line_inliers``), drops
-    # only wrong poses on the held-out split; 20 drops nearly all of them but also right ones on the synthetic scenes,
-    # whose views hold fewer lines (docs/localization.md, `-final-lines`). 0: off
+    # as usual, or without one the query fails with the reason; so does a weak point-only pose held by as few. 6, the
+    # rescue's own bar (``min_line_inliers``), drops only wrong poses on the held-out split; 20 drops nearly all of them
+    # but also right ones on the synthetic scenes, whose views hold fewer lines (docs/localization.md, `-final-lines`). 0: off
     min_final_lines: int = 6
 
 

@@ -276,6 +276,33 @@ def test_a_rescue_that_is_a_guess_gives_way_to_the_point_only_pose(monkeypatch, 
     np.testing.assert_array_equal(np.array(pl["cam_from_world"]), T)
 
 
+@pytest.mark.parametrize("held_by", [None, 3, 6])
+def test_a_weak_point_only_pose_that_few_lines_hold_fails(monkeypatch, held_by):
+    """A weak point-only pose (fewer than ``weak_inliers`` inliers) that the rescue did not replace is a guess when its
+    narrowing rounds keep fewer than ``min_final_lines`` line inliers, or take none: the query fails with the reason
+    (on the held-out split each such pose lay metres off). Held by enough lines, or with the test off, it stands."""
+    import localization.query as Q
+
+    T, ends, l2, pm = _scene(3, n_pts=8)
+    point_only = _off(T, 300, 120)
+    monkeypatch.setattr(Q, "estimate_pose_points", lambda *a, **k: {
+        "success": True, "cam_from_world": point_only, "n_inliers": 4, "inliers": np.arange(8) < 4})
+    monkeypatch.setattr(Q, "rescue_pose", lambda *a, **k: None)
+    m = {"line_idx": np.arange(8), "lines2d": np.zeros((8, 2, 2)), "lines3d": np.zeros((8, 2, 3))}
+    monkeypatch.setattr(Q, "refine_with_lines", lambda pm, l2, T0, *a, **k: (
+        (T0, None, None, False, None) if held_by is None else (T0, m, np.arange(8) < held_by, True, None)))
+    pl = Q.localize_matches(pm, l2, CAM, LineQuery(ends), LocalizationConfig())[0]["point+line"]
+    if held_by == 6:
+        assert pl["success"] and not pl["rescued"] and pl["n_line_inliers"] == 6
+    else:
+        assert not pl["success"]
+        assert f"weak point-only pose (4 inliers < 20) that the line rescue did not replace, held by {held_by or 0} line " \
+               "inliers < 6" in pl["reason"]
+    off = replace(LocalizationConfig(), line_rescue=LineRescueConfig(min_final_lines=0))
+    pl = Q.localize_matches(pm, l2, CAM, LineQuery(ends), off)[0]["point+line"]
+    assert pl["success"] and np.allclose(pl["cam_from_world"], point_only)
+
+
 def test_ransac_rescue_refines_each_kept_pose_without_ransac_and_picks_by_the_last_stage(monkeypatch):
     """One PnPL RANSAC per start; the later gates refine each kept pose (no more RANSAC), and the best score at the
     last gate wins: the useless start's pose, kept or not, loses to the near one's."""
