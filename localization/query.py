@@ -169,17 +169,17 @@ def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfi
     t_line = (time.perf_counter() - t1) * 1000
     # a rescued pose held by few lines is a guess (on the held-out split nearly none with fewer than 20 line inliers
     # in the last round lay within 5 cm; docs/localization.md): without a point-only pose, the query fails
-    weakly_held = rescued and used_lines and int(inliers.sum()) < rescue.min_final_lines
+    n_held = int(inliers.sum()) if used_lines else 0
+    weakly_held = rescued and used_lines and n_held < rescue.min_final_lines
     # so is a weak point-only pose that the rescue could not replace and as few lines hold: on the held-out split each
     # lay metres off (10 matches: 19 of 250; every match: 3 of 50), and a failure says so where a pose would not
-    n_held = int(inliers.sum()) if used_lines else 0
     weak_guess = (line_matches is None and rescue.weak_inliers > 0 and rescue.min_final_lines > 0 and weak
                   and not rescued and est["success"] and n_held < rescue.min_final_lines)
     if T is None or (unconfirmed and not used_lines) or weakly_held or weak_guess:
         why = ("no pose from the point and line matches" if T is None else
                f"a weak point-only pose ({int(est['n_inliers'])} inliers < {rescue.weak_inliers}) that the line "
                f"rescue did not replace, held by {n_held} line inliers < {rescue.min_final_lines}" if weak_guess else
-               f"the line rescue's pose kept {int(inliers.sum())} line inliers < {rescue.min_final_lines} in its last "
+               f"the line rescue's pose kept {n_held} line inliers < {rescue.min_final_lines} in its last "
                "narrowing round" if weakly_held else
                "the line rescue's pose was not confirmed by a narrowing round" if rescued else
                "the starting pose was not confirmed by a narrowing round")
