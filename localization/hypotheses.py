@@ -38,7 +38,7 @@ class HypothesisConfig:
     angle_bins: int = 8  # direction bins over 180 deg; a detection also counts in the bin next to its angle
     min_agree: float = 0.8  # share of a line's samples that must agree
     # best hypotheses handed on, each a PnPL RANSAC of the rescue (~25 ms): 5 rather than 3 gave held-out queries a right
-    # start more often (10 matches: per query 31 better / 5 worse; docs/localization.md, `-keep`)
+    # start more often (10 matches: per query 30 better / 5 worse; docs/localization.md, `-keep`)
     keep: int = 5
     # > 0: a first pass scores every hypothesis with the ``coarse_lines`` longest lines and only its ``coarse_keep``
     # best go on to all ``n_map_lines``. 0 (one pass over all): a hypothesis some cm off lays few of the longest
