@@ -34,6 +34,10 @@ class LinesFirstConfig:
     min_length_px: float = 40.0  # query lines that vote (the vanishing points' lines are HypothesisConfig's)
     line_tol_deg: float = 1.5  # a query line contains a direction when its interpretation plane does, within this
     step_deg: float = 0.25  # the search about the first vanishing point's axis
+    # the turn about that axis is weighted by a Gaussian of this width (deg) around the view's own: the votes of the
+    # other directions' lines are few, and a chance peak far from every view outvoted the right turn (0: unweighted)
+    turn_sigma_deg: float = 10.0
+    turns: int = 1  # the best-voted turns kept per view and vanishing point, at least 3 deg apart
     depth_range: tuple = (0.3, 8.0)  # m, the depths of a point match voted over
     depth_bin: float = 0.02  # m
     peaks: int = 4  # best-voted cells kept per rotation and ray (per stage without a point match): the line scoring picks
@@ -99,11 +103,17 @@ def vp_rotations(normals: np.ndarray, weights: np.ndarray, vps: np.ndarray, dire
                 continue
             Ra = _about(v, angles)  # (A, 3, 3)
             u = np.einsum("aij,kj->aki", Ra, others)  # (A, K-1, 3)
-            through = np.abs(np.einsum("akj,mj->akm", u, normals)) < tol  # (A, K-1, M)
-            score = (through.any(1) * weights[None]).sum(1)
-            R = refine_rotation(Ra[int(np.argmax(score))] @ R1, normals, weights, directions, tol)
-            if not any(np.linalg.norm(R - Q) < 0.02 for Q, _ in out):  # about 1 deg apart
-                out.append((R, i))
+            # the lines through v itself stay the same under every turn about v, and their planes meet some other
+            # direction at some angle by chance: out of the vote, or their chance peaks outvote the right angle
+            off = np.abs(normals @ v) >= tol
+            through = np.abs(np.einsum("akj,mj->akm", u, normals[off])) < tol  # (A, K-1, M')
+            score = (through.any(1) * weights[off][None]).sum(1)
+            if conf.turn_sigma_deg > 0:
+                score = score * np.exp(-0.5 * (angles / np.radians(conf.turn_sigma_deg)) ** 2)
+            for (j,) in _peaks(score, conf.turns, int(round(3.0 / conf.step_deg))):
+                R = refine_rotation(Ra[j] @ R1, normals, weights, directions, tol)
+                if not any(np.linalg.norm(R - Q) < 0.02 for Q, _ in out):  # about 1 deg apart
+                    out.append((R, i))
     return out
 
 
