@@ -102,12 +102,7 @@ def vp_rotations(normals: np.ndarray, weights: np.ndarray, vps: np.ndarray, dire
                 out.append((R1, i))
                 continue
             Ra = _about(v, angles)  # (A, 3, 3)
-            u = np.einsum("aij,kj->aki", Ra, others)  # (A, K-1, 3)
-            # the lines through v itself stay the same under every turn about v, and their planes meet some other
-            # direction at some angle by chance: out of the vote, or their chance peaks outvote the right angle
-            off = np.abs(normals @ v) >= tol
-            through = np.abs(np.einsum("akj,mj->akm", u, normals[off])) < tol  # (A, K-1, M')
-            score = (through.any(1) * weights[off][None]).sum(1)
+            score = turn_votes(Ra, others, normals, weights, v, tol)
             if conf.turn_sigma_deg > 0:
                 score = score * np.exp(-0.5 * (angles / np.radians(conf.turn_sigma_deg)) ** 2)
             for (j,) in _peaks(score, conf.turns, int(round(3.0 / conf.step_deg))):
@@ -115,6 +110,19 @@ def vp_rotations(normals: np.ndarray, weights: np.ndarray, vps: np.ndarray, dire
                 if not any(np.linalg.norm(R - Q) < 0.02 for Q, _ in out):  # about 1 deg apart
                     out.append((R, i))
     return out
+
+
+def turn_votes(turns: np.ndarray, others: np.ndarray, normals: np.ndarray, weights: np.ndarray, v: np.ndarray,
+               tol: float) -> np.ndarray:
+    """:math:`(A,)` the weight of the query lines that each turn :math:`(A, 3, 3)` about ``v`` puts through one of the
+    ``others`` directions :math:`(K, 3)` (camera frame): their interpretation planes hold it within ``tol`` (a sine).
+
+    The lines through ``v`` itself do not vote: a turn about ``v`` leaves them as they are, and the plane of each holds
+    one other direction at one turn by chance, so a stack of them (a door frame) made a peak of its own."""
+    off = np.abs(normals @ v) >= tol
+    u = np.einsum("aij,kj->aki", turns, others)  # (A, K, 3)
+    through = np.abs(np.einsum("akj,mj->akm", u, normals[off])) < tol  # (A, K, M')
+    return (through.any(1) * weights[off][None]).sum(1)
 
 
 def refine_rotation(R: np.ndarray, normals: np.ndarray, weights: np.ndarray, directions: np.ndarray, tol: float,
