@@ -65,6 +65,19 @@ def qt_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R_to_qvec_wxyz(R), t
 
 
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation :math:`(3, 3)` taking unit vector ``a`` to unit vector ``b`` (Rodrigues; about any axis
+    across ``a`` when they are opposite). As scipy's ``Rotation.align_vectors(b, a)`` for one pair, 100x cheaper."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    v, c = np.cross(a, b), float(a @ b)
+    if c < -1 + 1e-12:
+        axis = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)  # half a turn about it
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + K + K @ K / (1 + c)
+
+
 def project_to_rotation(M: np.ndarray) -> np.ndarray:
     """Nearest proper rotation (SVD) to a 3x3 matrix: 7-Scenes pose files are not exactly orthonormal."""
     U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))

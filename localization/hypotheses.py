@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from lipmap import geometry as geo
+from lipmap.poses import rotation_between
 
 from .linesfirst import LinesFirstConfig, lines_first_poses
 
@@ -191,7 +192,6 @@ def upright_hypotheses(p2d: np.ndarray, p3d: np.ndarray, camera, vps: np.ndarray
         :math:`(H, 4, 4)` cam_from_world.
     """
     import poselib
-    from scipy.spatial.transform import Rotation
 
     pairs = _pairs(len(p2d), conf.max_pairs, np.random.default_rng(seed))
     if len(pairs) == 0 or len(vps) == 0 or len(directions) == 0:
@@ -200,10 +200,10 @@ def upright_hypotheses(p2d: np.ndarray, p3d: np.ndarray, camera, vps: np.ndarray
     y = np.array([[0.0, 1.0, 0.0]])
     poses = []
     for a in vps:
-        Qc = Rotation.align_vectors(y, a[None])[0].as_matrix()
+        Qc = rotation_between(a, y[0])
         xr = x @ Qc.T
         for b in np.concatenate([directions, -directions]):
-            Qw = Rotation.align_vectors(y, b[None])[0].as_matrix()
+            Qw = rotation_between(b, y[0])
             Xr = p3d @ Qw.T
             for i, j in pairs:
                 for pose in poselib.up2p(xr[[i, j]], Xr[[i, j]]):

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lipmap import geometry as geo
+from lipmap.poses import rotation_between
 
 
 @dataclass
@@ -56,13 +57,6 @@ def interpretation_normals(lines2d: np.ndarray, camera) -> tuple:
     return n / np.linalg.norm(n, axis=1, keepdims=True), geo.segment_lengths(L)
 
 
-def _rotation_to(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation taking unit vector ``a`` to unit vector ``b``."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.align_vectors(b[None], a[None])[0].as_matrix()
-
-
 def _about(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     """Rotations :math:`(A, 3, 3)` by ``angle`` (A,) radians about the unit ``axis``."""
     from scipy.spatial.transform import Rotation
@@ -96,7 +90,7 @@ def vp_rotations(normals: np.ndarray, weights: np.ndarray, vps: np.ndarray, dire
             k = int(np.argmax(np.abs(c)))
             if abs(c[k]) < cos_prior:
                 continue
-            R1 = _rotation_to(pred[k], np.sign(c[k]) * v) @ R0
+            R1 = rotation_between(pred[k], np.sign(c[k]) * v) @ R0
             others = np.delete(directions, k, axis=0) @ R1.T  # (K-1, 3), turned about v below
             if len(others) == 0 or len(normals) == 0:
                 out.append((R1, i))
@@ -171,31 +165,38 @@ def voted_translations(R: np.ndarray, p2d: np.ndarray, p3d: np.ndarray, segments
     nq = normals[qi]
     nRX = (nq * RL[li, 0]).sum(1)  # n . R X for a point X of each paired map line
     s0, sd, sl = _segment_frames(segments)
-    bearings = geo.unproject_points(np.asarray(p2d, dtype=float).reshape(-1, 2), 1.0, camera)
-    bearings /= np.linalg.norm(bearings, axis=1, keepdims=True)
+    b = geo.unproject_points(np.asarray(p2d, dtype=float).reshape(-1, 2), 1.0, camera)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)  # (N, 3) the matches' rays
+    RX = np.asarray(p3d, dtype=float).reshape(-1, 3) @ R.T
     lo, hi = conf.depth_range
     nbins = int(np.ceil((hi - lo) / conf.depth_bin))
+    # every pair along every ray at once: (P, N)
+    nb = nq @ b.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = (nq @ RX.T - nRX[:, None]) / nb
+    # a ray almost in the line's plane gives no depth
+    pj, ray = np.nonzero((np.abs(nb) > 0.05) & (depth > lo) & (depth < hi))
+    depth = depth[pj, ray]
+    # the camera centre C = X - depth R^T b, so R (E - C) = R E - R X + depth b for a map line's end E; the ends'
+    # depths first, as most pairs put the map line behind the camera or beyond the range
+    lz = RL[li[pj], :, 2]
+    z0, z1 = (lz[:, e] - (RX[ray, 2] - depth * b[ray, 2]) for e in (0, 1))
+    ahead = (np.minimum(z0, z1) > lo) & (np.maximum(z0, z1) < hi)
+    pj, ray, depth = pj[ahead], ray[ahead], depth[ahead]
+    Y = RL[li[pj]] - (RX[ray] - depth[:, None] * b[ray])[:, None]
+    pq = qi[pj]
+    seen = _alike(Y, s0[pq], sd[pq], sl[pq], camera, conf)
+    cells = ray[seen] * nbins + ((depth[seen] - lo) / conf.depth_bin).astype(np.int64)
+    hists = _votes(cells, pq[seen], weights, len(b) * nbins).reshape(len(b), nbins)
     poses = []
-    for b, X in zip(bearings, np.asarray(p3d, dtype=float).reshape(-1, 3)):
-        RXp = R @ X
-        nb = nq @ b
-        ok = np.abs(nb) > 0.05  # the point's ray almost in the line's plane: no depth
-        depth = (nq[ok] @ RXp - nRX[ok]) / nb[ok]
-        inr = (depth > lo) & (depth < hi)
-        pq, pl = qi[ok][inr], li[ok][inr]
-        # the camera centre C = X - depth R^T b, so R (E - C) = R E - R X + depth b for a map line's end E
-        Y = RL[pl] - (RXp - depth[inr, None] * b)[:, None]
-        inr[inr] = _alike(Y, s0[pq], sd[pq], sl[pq], camera, conf)
-        if not inr.any():
-            continue
-        hist = _votes(((depth[inr] - lo) / conf.depth_bin).astype(np.int64), qi[ok][inr], weights, nbins)
+    for hist, ray_b, RXp in zip(hists, b, RX):
         hist = hist + np.r_[hist[1:], 0] + np.r_[0, hist[:-1]]  # a vote's neighbours: a peak split by a bin edge
         for _ in range(conf.peaks):
             j = int(np.argmax(hist))
             if hist[j] <= 0:
                 break
             T = np.eye(4)
-            T[:3, :3], T[:3, 3] = R, (lo + (j + 0.5) * conf.depth_bin) * b - R @ X
+            T[:3, :3], T[:3, 3] = R, (lo + (j + 0.5) * conf.depth_bin) * ray_b - RXp
             poses.append(T)
             hist[max(0, j - 5): j + 6] = 0  # the next peak at least 10 cm deeper or shallower
     return poses
@@ -220,14 +221,15 @@ def _segment_frames(segments: np.ndarray) -> tuple:
 def _alike(Y: np.ndarray, s0: np.ndarray, d: np.ndarray, ln: np.ndarray, camera, conf: LinesFirstConfig) -> np.ndarray:
     """:func:`seen_alike` of the 3D segments' ends in the camera frame :math:`(P, 2, 3)` and the detections' frames
     (:func:`_segment_frames`, one row per segment)."""
-    z = Y[..., 2]
-    ahead = (z.min(1) > conf.depth_range[0]) & (z.max(1) < conf.depth_range[1])
+    # each end's coordinates apart: numpy's reductions over an axis of two cost more than the arithmetic
+    z0, z1 = Y[:, 0, 2], Y[:, 1, 2]
+    ahead = (np.minimum(z0, z1) > conf.depth_range[0]) & (np.maximum(z0, z1) < conf.depth_range[1])
     with np.errstate(divide="ignore", invalid="ignore"):
-        uv = Y[..., :2] / z[..., None] * [camera.fx, camera.fy] + [camera.cx, camera.cy]  # (P, 2, 2)
-    a = ((uv - s0[:, None]) * d[:, None]).sum(-1)  # the projected ends along the detection, 0 at its first end
-    long_enough = np.abs(a[:, 1] - a[:, 0]) >= conf.min_projected_share * ln
-    overlap = (np.maximum(a[:, 0], a[:, 1]) > 0) & (np.minimum(a[:, 0], a[:, 1]) < ln)
-    with np.errstate(invalid="ignore"):
+        # the projected ends along the detection, 0 at its first end
+        a0, a1 = ((Y[:, e, 0] / z * camera.fx + camera.cx - s0[:, 0]) * d[:, 0]
+                  + (Y[:, e, 1] / z * camera.fy + camera.cy - s0[:, 1]) * d[:, 1] for e, z in ((0, z0), (1, z1)))
+        long_enough = np.abs(a1 - a0) >= conf.min_projected_share * ln
+        overlap = (np.maximum(a0, a1) > 0) & (np.minimum(a0, a1) < ln)
         return ahead & long_enough & overlap
 
 

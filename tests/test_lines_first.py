@@ -8,11 +8,11 @@ from scipy.spatial.transform import Rotation
 
 from lipmap import geometry as geo
 from lipmap.linemap import LineMap
-from lipmap.poses import make_T, pose_errors
+from lipmap.poses import make_T, pose_errors, rotation_between
 from lipmap.scene import Camera
 from localization import LocalizationConfig, Localizer
 from localization.hypotheses import HypothesisConfig, dominant_directions, vanishing_points
-from localization.linesfirst import (LinesFirstConfig, _about, _rotation_to, interpretation_normals, lines_first_poses,
+from localization.linesfirst import (LinesFirstConfig, _about, interpretation_normals, lines_first_poses,
                                      turn_votes, voted_centres, vp_rotations)
 
 CAM = Camera(640, 480, (525, 525, 320, 240))
@@ -225,7 +225,7 @@ def test_the_turn_is_voted_by_the_other_directions_lines_only(room):
     w = np.minimum(w, 200) / 200
     v = T[:3, :3] @ [0, 0, 1.0]  # the vertical vanishing point, exact
     R1 = _view(T, deg=8.0)[:3, :3]
-    R1 = _rotation_to(R1 @ [0, 0, 1.0], v) @ R1  # the view's rotation with its vertical on v
+    R1 = rotation_between(R1 @ [0, 0, 1.0], v) @ R1  # the view's rotation with its vertical on v
     turns = np.radians(np.arange(-30, 30.01, 0.25))
     Ra = _about(v, turns)
     votes = turn_votes(Ra, np.array([[1.0, 0, 0], [0, 1.0, 0]]) @ R1.T, n, w, v, np.sin(np.radians(1.5)))

@@ -67,3 +67,24 @@ class TestCheckRigid:
         bad(T)
         with pytest.raises(InputError, match=msg):
             poses.check_rigid(T, path="x/pose.txt")
+
+
+def test_rotation_between_is_the_smallest_rotation_and_agrees_with_scipy():
+    rotation_between = poses.rotation_between
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        a, b = rng.normal(size=(2, 3))
+        a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+        R = rotation_between(a, b)
+        np.testing.assert_allclose(R @ a, b, atol=1e-12)
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R) > 0
+        # the smallest rotation: its angle is the angle between the vectors (about a x b)
+        assert np.isclose(np.linalg.norm(Rotation.from_matrix(R).as_rotvec()), np.arccos(np.clip(a @ b, -1, 1)), atol=1e-9)
+        np.testing.assert_allclose(R, Rotation.align_vectors(b[None], a[None])[0].as_matrix(), atol=1e-9)
+    for a in (np.array([1.0, 0, 0]), np.array([0, 0.6, 0.8])):  # opposite vectors: half a turn about an axis across
+        R = rotation_between(a, -a)
+        np.testing.assert_allclose(R @ a, -a, atol=1e-12)
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R) > 0
+    np.testing.assert_allclose(rotation_between(a, a), np.eye(3), atol=1e-12)
