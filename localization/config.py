@@ -71,6 +71,10 @@ class LineRescueConfig:
     # rescue's own bar (``min_line_inliers``), drops only wrong poses on the held-out split; 20 drops nearly all of them
     # but also right ones on the synthetic scenes, whose views hold fewer lines (docs/localization.md, `-final-lines`). 0: off
     min_final_lines: int = 6
+    # ... nor one that keeps fewer than this share of the query's lines of min_length_px or more: a wrong pose lays
+    # a dozen map lines on some of a cluttered view's hundreds by chance (held-out split, 10 matches: 0.08 drops 35
+    # wrong poses and 3 right ones; 5 and 3 matches, 58 and 56 wrong, none right; docs/localization.md). 0: off
+    min_final_share: float = 0.08
 
 
 @dataclass

@@ -146,6 +146,9 @@ def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfi
         return rec, detail
     if not rescued:
         detail["point_line_inliers"] = detail["point_inliers"]
+    # the line inliers a rescued pose must keep in its last round: a right pose explains a share of the query's lines
+    final_bar = max(rescue.min_final_lines, int(np.ceil(rescue.min_final_share * np.count_nonzero(
+        geo.segment_lengths(np.asarray(lines2d, dtype=float).reshape(-1, 4)) >= rescue.min_length_px))))
     if line_matches is not None:
         T, m, inliers, used_lines, pl_inl = _pose_from_given_lines(pm, line_matches, T, camera, plconf)
     else:
@@ -157,7 +160,7 @@ def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfi
             local = (rescued and rescue.rounds == "local") or (
                 not rescued and est["success"] and 0 < conf.strong_inliers <= est["n_inliers"])
             T, m, inliers, used_lines, pl_inl = refine_with_lines(pm, lines2d, T, camera, lq, conf, plconf, local)
-        if rescued and est["success"] and (not used_lines or int(inliers.sum()) < rescue.min_final_lines):
+        if rescued and est["success"] and (not used_lines or int(inliers.sum()) < final_bar):
             # a rescued pose no narrowing round confirms, or few lines hold, is a guess (below); the point-only pose
             # stands instead, narrowed as if no rescue ran
             rescued, unconfirmed, plconf = False, False, replace(conf.point_line_pose, seed=conf.seed)
@@ -170,7 +173,7 @@ def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfi
     # a rescued pose held by few lines is a guess (on the held-out split nearly none with fewer than 20 line inliers
     # in the last round lay within 5 cm; docs/localization.md): without a point-only pose, the query fails
     n_held = int(inliers.sum()) if used_lines else 0
-    weakly_held = rescued and used_lines and n_held < rescue.min_final_lines
+    weakly_held = rescued and used_lines and n_held < final_bar
     # so is a weak point-only pose that the rescue could not replace and as few lines hold: on the held-out split each
     # lay metres off (10 matches: 19 of 250; every match: 3 of 50), and a failure says so where a pose would not
     weak_guess = (line_matches is None and rescue.weak_inliers > 0 and rescue.min_final_lines > 0 and weak
@@ -179,8 +182,8 @@ def localize_matches(pm, lines2d, camera, lq: LineQuery, conf: LocalizationConfi
         why = ("no pose from the point and line matches" if T is None else
                f"a weak point-only pose ({int(est['n_inliers'])} inliers < {rescue.weak_inliers}) that the line "
                f"rescue did not replace, held by {n_held} line inliers < {rescue.min_final_lines}" if weak_guess else
-               f"the line rescue's pose kept {n_held} line inliers < {rescue.min_final_lines} in its last "
-               "narrowing round" if weakly_held else
+               f"the line rescue's pose kept {n_held} line inliers < {final_bar} in its last narrowing round "
+               f"({rescue.min_final_share:.0%} of the query's lines, at least {rescue.min_final_lines})" if weakly_held else
                "the line rescue's pose was not confirmed by a narrowing round" if rescued else
                "the starting pose was not confirmed by a narrowing round")
         rec["point+line"] = {"success": False, "reason": why, "ms": t_point + t_line, "line_stage_ms": t_line,
