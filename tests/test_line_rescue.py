@@ -459,3 +459,25 @@ def test_a_rescue_no_narrowing_round_confirms_is_no_pose(monkeypatch):
     assert not Q.localize_matches(pm, l2, CAM, LineQuery(ends), default)[0]["point+line"]["success"]
     off = replace(LocalizationConfig(), line_rescue=LineRescueConfig(min_final_lines=0))
     assert Q.localize_matches(pm, l2, CAM, LineQuery(ends), off)[0]["point+line"]["success"]
+
+
+def test_a_rescued_pose_must_keep_a_share_of_the_querys_lines(monkeypatch):
+    """In a view of hundreds of lines a wrong pose lays a dozen map lines on detections by chance: a rescued pose must
+    keep ``min_final_share`` of the query's lines of ``min_length_px`` or more (and at least ``min_final_lines``)."""
+    import localization.query as Q
+
+    T, ends, l2, pm = _scene(3, n_lines=250)
+    n_long = int((np.linalg.norm(l2[:, 2:] - l2[:, :2], axis=1) >= LineRescueConfig().min_length_px).sum())
+    bar = int(np.ceil(0.08 * n_long))
+    assert bar > LineRescueConfig().min_final_lines
+    guess = {"cam_from_world": _off(T, 2, 1), "inliers": np.ones(len(pm), bool), "n_inliers": len(pm),
+             "n_line_inliers": 40, "success": True}
+    monkeypatch.setattr(Q, "rescue_pose", lambda *a, **k: guess)
+    m = {"line_idx": np.arange(60), "lines2d": np.zeros((60, 2, 2)), "lines3d": np.zeros((60, 2, 3))}
+    for kept, share, ok in ((bar, 0.08, True), (bar - 1, 0.08, False), (bar - 1, 0.0, True)):
+        monkeypatch.setattr(Q, "confirm_with_lines", lambda *a, k=kept: (a[3], m, np.arange(60) < k, True, None))
+        conf = replace(LocalizationConfig(), line_rescue=LineRescueConfig(min_final_share=share))
+        pl = Q.localize_matches(pm, l2, CAM, LineQuery(ends), conf)[0]["point+line"]
+        assert pl["success"] == ok and pl["rescued"]
+        if not ok:
+            assert f"{bar - 1} line inliers < {bar} in its last narrowing round (8% of the query's lines" in pl["reason"]
