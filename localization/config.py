@@ -69,11 +69,12 @@ class LineRescueConfig:
     # a rescued pose whose last narrowing round keeps fewer line inliers is no pose: the point-only pose stands, narrowed
     # as usual, or without one the query fails with the reason; so does a weak point-only pose held by as few. 6, the
     # rescue's own bar (``min_line_inliers``), drops only wrong poses on the held-out split; 20 drops nearly all of them
-    # but also right ones on the synthetic scenes, whose views hold fewer lines (docs/localization.md, `-final-lines`). 0: off
+    # but also right ones on the synthetic scenes, whose views hold fewer lines (docs/localization.md, `-final-lines`). 0: no count
+    # (with min_final_share 0 too, the test is off)
     min_final_lines: int = 6
     # ... nor one that keeps fewer than this share of the query's lines of min_length_px or more: a wrong pose lays
     # a dozen map lines on some of a cluttered view's hundreds by chance (held-out split, 10 matches: 0.08 drops 35
-    # wrong poses and 3 right ones; 5 and 3 matches, 58 and 56 wrong, none right; docs/localization.md). 0: off
+    # wrong poses and 3 right ones; 5 and 3 matches, 58 and 56 wrong, none right; docs/localization.md). 0: no share
     min_final_share: float = 0.08
 
 
