@@ -76,6 +76,9 @@ class LineRescueConfig:
     # a dozen map lines on some of a cluttered view's hundreds by chance (held-out split, 10 matches: 0.08 drops 35
     # wrong poses and 3 right ones; 5 and 3 matches, 58 and 56 wrong, none right; docs/localization.md). 0: no share
     min_final_share: float = 0.08
+    # the starts' RANSACs and refinements run on this many threads (PoseLib works outside Python's lock); the poses are
+    # the same for any number. 1: in the caller's thread (a worker that already has one core per query)
+    threads: int = 2
 
 
 @dataclass
@@ -173,6 +176,7 @@ def check_config(conf: LocalizationConfig) -> LocalizationConfig:
         ("line_rescue.max_query_lines", rc.max_query_lines, _int(0), "an integer >= 0 (0: all)"),
         ("line_rescue.min_line_inliers", rc.min_line_inliers, _int(0), "an integer >= 0"),
         ("line_rescue.min_final_lines", rc.min_final_lines, _int(0), "an integer >= 0 (0: off)"),
+        ("line_rescue.threads", rc.threads, _int(1), "an integer >= 1"),
         ("line_rescue.max_iterations", rc.max_iterations, _int(1), "an integer >= 1"),
         ("line_rescue.max_point_error", rc.max_point_error, _pos, "> 0 px"),
         ("line_rescue.same_pose_m", rc.same_pose_m, _nonneg, ">= 0 m"),

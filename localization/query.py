@@ -19,6 +19,7 @@ from .config import LocalizationConfig
 from .estimate import estimate_pose_points, inliers_at, local_pnpl_pose, pnpl_pose, refine_pnpl_pose, subsample_matches
 from .hypotheses import line_verified_poses
 from .linequery import LineQuery, LineQueryConfig, correct_line_matches
+from .parallel import mapped
 
 
 def make_line_query(linemap, conf: LocalizationConfig, where="line map") -> LineQuery:
@@ -318,9 +319,12 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
                          max_reproj_error=rc.max_point_error,
                          min_iterations=min(conf.point_line_pose.min_iterations, rc.max_iterations))
         qconf, firsts, later = _rescue_query(conf, rc.gates[0]), [], rc.gates[1:]
-        for T0 in priors:
+
+        def first_stage(T0):
             m = lq.match(lines2d, T0, camera, qconf)
-            r = pnpl_pose(pm.p2d, pm.p3d, m["lines2d"], m["lines3d"], camera, conf=plconf)
+            return pnpl_pose(pm.p2d, pm.p3d, m["lines2d"], m["lines3d"], camera, conf=plconf)
+
+        for T0, r in zip(priors, mapped(first_stage, priors, rc.threads)):
             kept = r["success"] and r["n_line_inliers"] >= rc.min_line_inliers
             trace.append({"stage": 0, "start": T0, "result": r, "kept": kept,
                           "score": r["n_inliers"] + r["n_line_inliers"] if kept else -1, "origin": len(trace)})
@@ -328,10 +332,19 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
                 firsts.append((len(trace) - 1, r["cam_from_world"], r))
     else:
         raise ValueError(f"unknown line rescue solver {rc.solver!r} (ransac, refine)")
+    if later:
+        # each pose's stages trace into a list of their own, joined in the starts' order: the same trace on any thread
+        def stages(first):
+            own = []
+            return refine_stages(pm, lines2d, first[1], lq, camera, conf, later, own, -1), own
+
+        refined = mapped(stages, firsts, rc.threads)
     best, best_score = None, -1
-    for origin, T, r in firsts:
+    for k, (origin, T, r) in enumerate(firsts):
         if later:
-            r = refine_stages(pm, lines2d, T, lq, camera, conf, later, trace, len(trace) if origin is None else origin)
+            r, own = refined[k]
+            origin = len(trace) if origin is None else origin
+            trace.extend({**t, "origin": origin} for t in own)
             kept = r is not None and r["n_line_inliers"] >= rc.min_line_inliers
             score = r["n_inliers"] + r["n_line_inliers"] if kept else -1
             trace[-1].update(kept=kept, score=score)

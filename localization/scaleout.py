@@ -88,7 +88,8 @@ class RayRunner:
         ray = import_ray()
         connected = self._connect(ray)
         try:
-            prepare, chunk_task = ray.remote(_prepare), ray.remote(localize_chunk)
+            # a query's rescue runs on LineRescueConfig.threads threads: its task holds as many CPUs
+            prepare, chunk_task = ray.remote(_prepare), ray.remote(num_cpus=conf.line_rescue.threads)(localize_chunk)
             # every scene's mapping is submitted at once; its queries as soon as its artifacts are there
             hloc_dir = as_hloc_outputs(hloc_dir)  # absolute paths: the workers start elsewhere
             prepared = [prepare.remote(scene, Path(out_dir).resolve(), conf, hloc_dir, overwrite, skip_bad_frames,

@@ -331,6 +331,27 @@ def test_ransac_rescue_refines_each_kept_pose_without_ransac_and_picks_by_the_la
     assert len(ransacs) == 3 and len(refines) == 2 * len(kept0) and pose_errors(T, r1["cam_from_world"])[0] < 0.005
 
 
+@pytest.mark.parametrize("solver", ["ransac", "refine"])
+def test_rescue_on_threads_gives_the_single_threads_pose_and_trace(solver):
+    """The starts run side by side on ``threads``; the pose and the trace (stages, origins, scores, in the starts'
+    order) are those of one thread."""
+    T, ends, l2, pm = _scene(2)
+    starts = [_off(T, 60, 40), _off(T, 8, 3), _off(T, -8, -3), _off(T, 25, 8)]
+    out = {}
+    for threads in (1, 2, 3):
+        trace = []
+        conf = replace(LocalizationConfig(), line_rescue=LineRescueConfig(weak_inliers=12, solver=solver, threads=threads))
+        out[threads] = rescue_pose(pm, l2, starts, LineQuery(ends), CAM, conf, trace), trace
+    r1, t1 = out[1]
+    assert r1 is not None and pose_errors(T, r1["cam_from_world"])[0] < 0.005
+    assert sum(t["stage"] == 0 for t in t1) == 4 and len(t1) > 4
+    for r, t in (out[2], out[3]):
+        assert np.allclose(r["cam_from_world"], r1["cam_from_world"], atol=1e-9)
+        assert [(e["stage"], e["origin"], e["kept"], e["score"]) for e in t] == \
+            [(e["stage"], e["origin"], e["kept"], e["score"]) for e in t1]
+        assert all(np.allclose(e["start"], f["start"], atol=1e-9) for e, f in zip(t, t1))
+
+
 @pytest.mark.parametrize("rounds", ["confirm", "local", "ransac"])
 def test_a_rescued_pose_stands_and_the_lines_confirm_it(monkeypatch, rounds):
     """After the rescue, the narrowing rounds leave its pose as it is and only count the lines that hold it

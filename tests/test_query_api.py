@@ -213,6 +213,7 @@ class TestConfig:
         (LocalizationConfig(line_rescue=LineRescueConfig(solver="refine", refine_gates=())), "line_rescue.refine_gates"),
         (LocalizationConfig(point_line_pose=PointLinePoseConfig(refine_step_tol=0)), "refine_step_tol"),
         (LocalizationConfig(strong_inliers=-1), "strong_inliers"),
+        (LocalizationConfig(line_rescue=LineRescueConfig(threads=0)), "line_rescue.threads"),
         (LocalizationConfig(line_rescue=LineRescueConfig(hypotheses=HypothesisConfig(angle_bins=65))), "angle_bins"),
     ])
     def test_a_field_a_localizer_cannot_honour_is_refused(self, conf, field):

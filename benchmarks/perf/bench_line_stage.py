@@ -13,7 +13,9 @@ defaults while the parts of the line stage are timed:
 * ``visibility``, ``narrow query``, ``narrow PnPL``: the narrowing rounds every query goes through (a rescued
   pose's round only queries the lines that confirm it: no PnPL).
 
-Per query the parts add up to its line stage (``line_stage_ms`` of the eval's records) up to the glue between them.
+Per query the parts add up to its line stage (``line_stage_ms`` of the eval's records) up to the glue between them;
+the rescue's starts run on ``LineRescueConfig.threads`` threads, and its parts sum their threads' time, which can
+exceed the wall time they take.
 Figures are medians over queries (rescued and not rescued apart), then the median of ``--runs`` runs; written to
 ``benchmarks/results/perf-line-stage-<scene>-<N>[-<tag>].json``.
 """
@@ -22,6 +24,7 @@ from __future__ import annotations
 import json
 import statistics
 import sys
+import threading
 import time
 from argparse import Namespace
 from collections import defaultdict
@@ -45,7 +48,8 @@ class PartTimer:
     def __init__(self, lq):
         import localization.query as P
 
-        self.P, self.lq, self.t, self.in_rescue, self.depth = P, lq, defaultdict(float), False, 0
+        self.P, self.lq, self.t, self.in_rescue = P, lq, defaultdict(float), False
+        self.local, self.lock = threading.local(), threading.Lock()  # the rescue's starts run on threads
         self.saved = [(P, "line_verified_poses"), (P, "pnpl_pose"), (P, "local_pnpl_pose"), (P, "refine_pnpl_pose"),
                       (P, "rescue_pose"), (lq, "match"), (lq, "visible_lines")]
         self.originals = [getattr(o, n) for o, n in self.saved]
@@ -70,15 +74,17 @@ class PartTimer:
         f = getattr(owner, name)
 
         def timed(*a, **k):
-            key = part() if self.depth == 0 else None  # a call inside a timed one (visibility in a query) counts there
-            self.depth += 1
+            depth = getattr(self.local, "depth", 0)
+            key = part() if depth == 0 else None  # a call inside a timed one (visibility in a query) counts there
+            self.local.depth = depth + 1
             t = time.perf_counter()
             try:
                 return f(*a, **k)
             finally:
-                self.depth -= 1
+                self.local.depth = depth
                 if key is not None:
-                    self.t[key] += (time.perf_counter() - t) * 1000
+                    with self.lock:
+                        self.t[key] += (time.perf_counter() - t) * 1000
 
         setattr(owner, name, timed)
 
