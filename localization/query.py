@@ -306,7 +306,8 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
     (docs/localization.md). With ``solver="refine"`` every start goes through ``refine_gates`` alone.
     ``trace`` (a list) receives one dict per start and stage: ``stage``, ``start`` and ``result`` (the solver's
     dict, None when a stage found too few lines), ``kept`` (whether it passed ``min_line_inliers``), ``score`` and
-    ``origin`` (the index in ``trace`` of the stage-0 entry the pose comes from).
+    ``origin`` (the index in ``trace`` of the stage-0 entry the pose comes from). The starts run side by side on
+    ``LineRescueConfig.threads`` threads; the pose and the trace are the same on any number.
     """
     rc = conf.line_rescue
     priors = distinct_poses(priors, rc.same_pose_m, rc.same_pose_deg)
