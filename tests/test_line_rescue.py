@@ -135,9 +135,10 @@ def test_lines_score_the_true_pose_above_wrong_ones():
 
 @pytest.mark.parametrize("bins", [8, 12])
 def test_line_scores_agree_with_the_reference(bins):
-    """The fast score (endpoints for all, samples only where a line lands in the image) gives the reference's
-    counts, for poses at, near and far from the truth, turned away (lines behind the camera), or at the map
-    (a line through the camera's plane); with 12 bins the bit table is 16 bits wide."""
+    """The fast score (endpoints for all, samples only where a line lands in the image, the last samples only where
+    the first left it a chance) gives the reference's counts, for poses at, near and far from the truth, turned away
+    (lines behind the camera), or at the map (a line through the camera's plane); with 12 bins the bit table is 16
+    bits wide."""
     from localization.hypotheses import HypothesisConfig, LineEvidence
 
     T, ends, l2, _ = _scene(5, n_lines=80)
@@ -146,7 +147,9 @@ def test_line_scores_agree_with_the_reference(bins):
     poses += [make_T(Rotation.from_euler("y", a, degrees=True).as_matrix() @ T[:3, :3], T[:3, 3]) for a in (60, 100, 180)]
     poses += [make_T(T[:3, :3], T[:3, 3] + [0, 0, -3.0]), make_T(T[:3, :3], T[:3, 3] + rng.normal(0, 1, 3))]
     poses = np.stack(poses)
-    for conf in (HypothesisConfig(angle_bins=bins), HypothesisConfig(angle_bins=bins, min_agree=0.4, samples=3)):
+    # every sample, two of three, any sample: the early drop of lines that already missed too often must not change a count
+    for conf in (HypothesisConfig(angle_bins=bins), HypothesisConfig(angle_bins=bins, min_agree=0.4, samples=3),
+                 HypothesisConfig(angle_bins=bins, min_agree=1.0, samples=4), HypothesisConfig(angle_bins=bins, min_agree=0.1)):
         ev = LineEvidence(l2, CAM, conf)
         fast, ref = ev.score(poses, ends), ev.score_reference(poses, ends)
         np.testing.assert_array_equal(fast, ref)
