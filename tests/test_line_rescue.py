@@ -355,6 +355,29 @@ def test_rescue_on_threads_gives_the_single_threads_pose_and_trace(solver):
         assert all(np.allclose(e["start"], f["start"], atol=1e-9) for e, f in zip(t, t1))
 
 
+def test_a_query_on_threads_gives_the_single_threads_record_and_trace():
+    """Through localize_query (the point-only pose, the retrieved views and the hypotheses as starts): the same pose
+    and starts on one thread as on two."""
+    T, ends, l2, pm = _scene(2, n_pts=6)
+    points = _Points(pm, _Model({"db1": _off(T, 60, 40), "db2": _off(T, 6, 2)}))
+    out = []
+    for threads in (1, 2):
+        rescue = LineRescueConfig(weak_inliers=12, prior_views=2, threads=threads,
+                                  hypotheses=replace(LineRescueConfig().hypotheses, box_margin=5.0))
+        trace = []
+        rec = localize_query("q", CAM, points, l2, LineQuery(ends), replace(LocalizationConfig(), line_rescue=rescue),
+                             trace=trace)
+        out.append((rec["point+line"], [t for t in trace if "stage" in t]))
+    (a, ta), (b, tb) = out
+    assert a["success"] and a["rescued"] and pose_errors(T, np.array(a["cam_from_world"]))[0] < 0.005
+    assert np.allclose(a["cam_from_world"], b["cam_from_world"], atol=1e-9)
+    assert a["n_line_inliers"] == b["n_line_inliers"]
+    assert sum(t["stage"] == 0 for t in ta) >= 2  # the point-only pose and the far view (the rest lie near those)
+    assert [(t["stage"], t["origin"], t["kept"], t["score"]) for t in ta] == \
+        [(t["stage"], t["origin"], t["kept"], t["score"]) for t in tb]
+    assert all(np.allclose(t["start"], u["start"], atol=1e-9) for t, u in zip(ta, tb))
+
+
 @pytest.mark.parametrize("rounds", ["confirm", "local", "ransac"])
 def test_a_rescued_pose_stands_and_the_lines_confirm_it(monkeypatch, rounds):
     """After the rescue, the narrowing rounds leave its pose as it is and only count the lines that hold it
