@@ -1,7 +1,8 @@
-"""The thread pools a query's independent parts share: PoseLib's solvers and OpenCV work outside Python's lock, and
-much of numpy's, so on a few cores one query's rescue starts (and its hypotheses' parts) run side by side."""
+"""The thread pools that a query's line-rescue starts run on: PoseLib's RANSAC works outside Python's lock, so on a
+few cores the starts run side by side."""
 from __future__ import annotations
 
+import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Optional
 
@@ -12,9 +13,11 @@ def thread_pool(threads: int) -> Optional[ThreadPoolExecutor]:
     """The process's pool of ``threads`` threads (made once), or None for one thread: work in the caller's."""
     if threads <= 1:
         return None
-    if threads not in _POOLS:
-        _POOLS[threads] = ThreadPoolExecutor(threads, thread_name_prefix="lipmap")
-    return _POOLS[threads]
+    # keyed by the process too: a child forked after the pool was made inherits it without its threads
+    key = (os.getpid(), threads)
+    if key not in _POOLS:
+        _POOLS[key] = ThreadPoolExecutor(threads, thread_name_prefix="lipmap")
+    return _POOLS[key]
 
 
 def mapped(f, items: list, threads: int) -> list:
