@@ -45,9 +45,11 @@ class LinesFirstConfig:
     search_m: float = 2.0  # without a point match: the camera centre is sought this far around the retrieved image's
     centre_bin: float = 0.05  # m, that search's histogram across the main direction
     min_projected_share: float = 0.3  # ... where a map line votes only if it projects at least this share of the detection
-    # without a point match, the retrieved image's own centre also stands with each rotation: the centre vote misses
-    # even beside a view, where the line scoring tells the view's centre apart (held-out split: 4 -> 12 % within 5 cm)
-    view_centres: bool = True
+    # with fewer point matches than this, the retrieved image's own centre also stands with each rotation (0: never).
+    # Without a match the centre vote misses even beside a view, and with one or two a wrong match's ray leads the
+    # votes astray, while the line scoring tells a view's centre apart (held-out split: 0 matches 4 -> 12 % within
+    # 5 cm / 5 deg, 1 match 34 -> 36 %; docs/localization.md, `-view-centres`)
+    view_centres_below: int = 3
 
 
 def interpretation_normals(lines2d: np.ndarray, camera) -> tuple:
@@ -339,8 +341,8 @@ def voted_centres(R: np.ndarray, segments: np.ndarray, normals: np.ndarray, weig
 def lines_first_poses(p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, camera, views: list,
                       map_lines: np.ndarray, directions: np.ndarray, vps: np.ndarray,
                       conf: LinesFirstConfig) -> np.ndarray:
-    """Every pose of :func:`voted_translations` (:func:`voted_centres` without a point match, and with
-    ``conf.view_centres`` the view's own centre) for every rotation of :func:`vp_rotations` near ``views``.
+    """Every pose of :func:`voted_translations` (:func:`voted_centres` without a point match; with fewer matches than
+    ``conf.view_centres_below`` also the view's own centre) for every rotation of :func:`vp_rotations` near ``views``.
 
     Returns:
         :math:`(H, 4, 4)` cam_from_world.
@@ -354,12 +356,12 @@ def lines_first_poses(p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, cam
     w = np.minimum(length, 200.0) / 200.0  # long lines count more, a wall-long one no more than 200 px
     poses = []
     for R, i in vp_rotations(n, w, vps, directions, views, conf):
+        V = np.asarray(views[i], dtype=float)
+        C0 = -V[:3, :3].T @ V[:3, 3]
         if len(p2d):
             poses += voted_translations(R, p2d, p3d, segs, n, w, map_lines, camera, conf)
         else:
-            V = np.asarray(views[i], dtype=float)
-            C0 = -V[:3, :3].T @ V[:3, 3]
             poses += voted_centres(R, segs, n, w, map_lines, directions, C0, camera, conf)
-            if conf.view_centres:
-                poses.append(make_T(R, -R @ C0))
+        if len(p2d) < conf.view_centres_below:
+            poses.append(make_T(R, -R @ C0))
     return np.array(poses).reshape(-1, 4, 4)

@@ -119,20 +119,24 @@ def test_the_centre_is_voted_within_the_search_only(room):
     assert all(pose_errors(P, T)[0] > 0.5 for P in far)  # 3 m away: not within the 2 m searched
 
 
-def test_without_a_point_match_the_views_own_centre_stands_with_each_rotation(room):
-    """The centre vote can miss beside a view; the view's centre, with each rotation from the vanishing points, is
-    then among the poses the lines score (and with ``view_centres=False`` it is not)."""
+@pytest.mark.parametrize("n_points", [0, 1, 2, 3])
+def test_below_three_matches_the_views_own_centre_stands_with_each_rotation(room, n_points):
+    """The votes can miss beside a view (without a match, or along a wrong match's ray); with fewer than
+    ``view_centres_below`` matches the view's centre, with each rotation from the vanishing points, is among the poses
+    the lines score too (with ``view_centres_below=0``, or from 3 matches, it is not)."""
     T, seen = room["T"], room["seen"]
+    p2d, p3d = room["pts"]
     V = _view(T, cm=8.0)
     CV = -V[:3, :3].T @ V[:3, 3]
     vps = vanishing_points(seen, CAM, HypothesisConfig(vp_count=2))
-    none = np.zeros((0, 2)), np.zeros((0, 3))
-    on, off = (lines_first_poses(*none, seen, CAM, [V], room["lines"], room["dirs"], vps, LinesFirstConfig(view_centres=v))
-               for v in (True, False))
+    on, off = (lines_first_poses(p2d[:n_points], p3d[:n_points], seen, CAM, [V], room["lines"], room["dirs"], vps,
+                                 LinesFirstConfig(view_centres_below=b)) for b in (3, 0))
     at_view = [P for P in on if np.allclose(-P[:3, :3].T @ P[:3, 3], CV)]
-    assert len(on) == len(off) + len(at_view) and at_view
-    assert min(pose_errors(P, T)[1] for P in at_view) < 0.5  # the rotation from the lines, not the view's 12 deg off
-    assert not any(np.allclose(-P[:3, :3].T @ P[:3, 3], CV) for P in off)
+    assert len(on) == len(off) + len(at_view) and not any(np.allclose(-P[:3, :3].T @ P[:3, 3], CV) for P in off)
+    if n_points < 3:
+        assert at_view and min(pose_errors(P, T)[1] for P in at_view) < 0.5  # the lines' rotation, not the view's 12 deg
+    else:
+        assert not at_view
 
 
 @pytest.mark.parametrize("n_points", [0, 1, 2, 3])
