@@ -361,7 +361,7 @@ def _image_sections(out: Path, dataset: str, all_res: dict, runs: dict, root, re
     ``assets`` gets each scene's :class:`SceneAssets`."""
     md_q = ["## Query examples", "",
             f"For the {n_examples} queries whose translation error improved most with lines (first those that "
-            "lines bring within 5 cm), then the "
+            "lines bring within 5 cm, a query without a point-only pose first of all), then the "
             f"{n_examples} largest point+line translation errors: the query image with its detected 2D lines "
             "(blue) and the map's visible 3D lines projected (red) with the point-only pose (left) and the "
             "point+line pose (right). Well-aligned red and blue lines mean a good pose.", ""]

@@ -121,8 +121,9 @@ def query_lines_file(run: SceneRun) -> Path:
 def select_examples(run: SceneRun, n: int = 3, good_cm: float = 5.0) -> list[tuple[str, int, str]]:
     """The ``n`` largest translation improvements of point+line over point-only, first among the queries that
     point+line puts within ``good_cm`` (else the largest are rescues of queries that fail either way, 5 m -> 1.4 m),
-    from the queries with both poses; then the ``n`` largest point+line translation errors among the rest of the
-    queries with a point+line pose (a point-only pose may be missing: lines may be all there is).
+    from the queries with both poses or, within ``good_cm``, without a point-only pose (lines found what points could
+    not: the first shown); then the ``n`` largest point+line translation errors among the rest of the queries with a
+    point+line pose (a point-only pose may be missing: lines may be all there is).
 
     Returns:
         ``[(kind, rank, query)]`` with kind "improved" or "worst", rank from 1.
@@ -133,8 +134,8 @@ def select_examples(run: SceneRun, n: int = 3, good_cm: float = 5.0) -> list[tup
         tp, tl = _num(rec.get("point", {}).get("t_cm")), _num(rec.get("point+line", {}).get("t_cm"))
         if p.get("point+line") is not None and math.isfinite(tl):
             cand.append((q, tp if p.get("point") is not None else math.inf, tl))
-    both = [c for c in cand if math.isfinite(c[1])]
-    improved = [c for c in sorted(both, key=lambda c: (c[2] > good_cm, c[2] - c[1])) if c[1] > c[2]][:n]
+    better = [c for c in cand if c[1] > c[2] and (math.isfinite(c[1]) or c[2] <= good_cm)]
+    improved = sorted(better, key=lambda c: (c[2] > good_cm, c[2] - c[1], c[2]))[:n]
     taken = {c[0] for c in improved}
     worst = sorted((c for c in cand if c[0] not in taken), key=lambda c: -c[2])[:n]
     return [("improved", i + 1, c[0]) for i, c in enumerate(improved)] + [("worst", i + 1, c[0]) for i, c in enumerate(worst)]
@@ -150,8 +151,8 @@ def examples_note(run: SceneRun, examples: list) -> Optional[str]:
     if any(kind == "improved" for kind, _, _ in examples):
         return None
     if not n_pt:
-        return (f"every point-only pose failed ({len(run.queries)} of {len(run.queries)} queries), so there is no "
-                "improvement to compare against: only the largest point+line errors are shown")
+        return (f"every point-only pose failed ({len(run.queries)} of {len(run.queries)} queries) and lines brought "
+                f"none within 5 cm: only the largest point+line errors are shown")
     return "no query's translation error improved with lines: only the largest point+line errors are shown"
 
 

@@ -41,6 +41,27 @@ def test_improved_examples_show_queries_lines_bring_within_5_cm_first(tmp_path):
     assert select_examples(run, 1, good_cm=0.5)[0] == ("improved", 1, "a")  # none within: the largest gain
 
 
+def test_a_query_only_lines_localize_within_5_cm_is_the_first_improvement(tmp_path):
+    """Without a point-only pose (scarce points, or none), a point+line pose within 5 cm is what lines are for: it
+    leads the improvements; one farther off is a guess, among the largest errors only."""
+    from localization.report_run import SceneRun, examples_note, select_examples
+
+    errs = {"a": (30.0, 1.0), "b": (None, 2.0), "c": (None, 147.0), "d": (None, 0.5)}
+    run = SceneRun("s", tmp_path, {"queries": {q: {"point": {"t_cm": p}, "point+line": {"t_cm": pl}}
+                                               for q, (p, pl) in errs.items()}},
+                   poses={q: {"point": None if p is None else np.eye(4), "point+line": np.eye(4)}
+                          for q, (p, _) in errs.items()})
+    assert select_examples(run, 3) == [("improved", 1, "d"), ("improved", 2, "b"), ("improved", 3, "a"),
+                                       ("worst", 1, "c")]
+    lines_only = SceneRun("s", tmp_path, {"queries": {q: run.queries[q] for q in "bcd"}},
+                          poses={q: run.poses[q] for q in "bcd"})
+    ex = select_examples(lines_only, 3)
+    assert ex[:2] == [("improved", 1, "d"), ("improved", 2, "b")] and examples_note(lines_only, ex) is None
+    far = SceneRun("s", tmp_path, {"queries": {"c": run.queries["c"]}}, poses={"c": run.poses["c"]})
+    ex = select_examples(far, 3)
+    assert ex == [("worst", 1, "c")] and "every point-only pose failed" in examples_note(far, ex)
+
+
 def test_write_report(fake_run):
     out, root = fake_run["out"], fake_run["root"]
     path = rp.write_report(out, "7scenes", root=root)
@@ -95,8 +116,9 @@ def test_report_without_dataset_root_and_cli(fake_run, capsys):
 
 
 def test_a_report_holds_only_its_own_runs_pictures(fake_run):
-    """Two runs into one OUT: the second, whose point-only poses all failed, leaves none of the first run's overlays,
-    says why it shows no improvement, and still shows its largest point+line errors."""
+    """Two runs into one OUT: the second, whose point-only poses all failed and whose point+line poses lie beyond
+    5 cm, leaves none of the first run's overlays, says why it shows no improvement, and still shows its largest
+    point+line errors."""
     import json
 
     out, root = fake_run["out"], fake_run["root"]
@@ -112,9 +134,10 @@ def test_a_report_holds_only_its_own_runs_pictures(fake_run):
     journal.write_text("".join(json.dumps(r) + "\n" for r in lines))
     for q in res["queries"].values():
         q["point"] = {"t_cm": None, "R_deg": None, "success": False}
+        q["point+line"]["t_cm"] += 10.0
     (chess / "results.json").write_text(json.dumps(res))
     text = rp.write_report(out, "7scenes", root=root).read_text()
     assert not (rep / "query_chess_improved1.png").exists() and "improved1" not in text
-    assert "chess: every point-only pose failed (2 of 2 queries), so there is no improvement to compare against" in text
+    assert "chess: every point-only pose failed (2 of 2 queries) and lines brought none within 5 cm" in text
     assert {p.name for p in rep.glob("query_chess_*.png")} == {"query_chess_worst1.png", "query_chess_worst2.png"}
-    assert f"| largest point+line error #1 | `{Q1}` | failed | 4.0 cm / 0.10° |" in text
+    assert f"| largest point+line error #1 | `{Q1}` | failed | 14.0 cm / 0.10° |" in text
