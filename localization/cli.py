@@ -142,6 +142,8 @@ def eval_config(args):
         conf = replace(conf, line_rescue=replace(conf.line_rescue, weak_inliers=args.line_rescue))
     if args.rescue_solver:
         conf = replace(conf, line_rescue=replace(conf.line_rescue, solver=args.rescue_solver))
+    if args.rescue_threads is not None:
+        conf = replace(conf, line_rescue=replace(conf.line_rescue, threads=args.rescue_threads))
     if args.max_line_step is not None:
         conf = replace(conf, max_line_step=args.max_line_step)
     if args.no_vanishing_points:
@@ -471,6 +473,10 @@ def _add_eval_parser(sub):
     p.add_argument("--rescue-solver", default=None, choices=["ransac", "refine"],
                    help="how the rescue estimates a pose from each start: PnPL RANSAC, then robust refinements in "
                         "narrowing gates (default), or the refinements alone: faster, less accurate (docs/localization.md)")
+    p.add_argument("--rescue-threads", type=int_at_least(1), default=None, metavar="N",
+                   help="threads a weak query's rescue starts run on (default "
+                        f"{LocalizationConfig().line_rescue.threads}; the poses are the same on any number; 1 where "
+                        "every core already localizes a query of its own)")
     p.add_argument("--max-line-step", default=None, type=_max_line_step, metavar="M,DEG",
                    help="a line refinement round whose pose moves farther than M metres or DEG degrees from its start "
                         "is refused and the rounds stop (default %s; 'off': every round is taken)"

@@ -206,6 +206,7 @@ def test_eval_options_set_the_rescue():
 
     assert conf().line_rescue.solver == "ransac" and conf().line_rescue.weak_inliers == 20
     assert conf("--rescue-solver", "refine").line_rescue.solver == "refine"
+    assert conf().line_rescue.threads == 2 and conf("--rescue-threads", "1").line_rescue.threads == 1
     assert conf("--line-rescue", "0", "--line-query", "raycast").line_rescue.weak_inliers == 0
     assert conf("--line-query", "raycast").line_query.method == "raycast"
     assert conf().line_rescue.hypotheses.upright and not conf("--no-vanishing-points").line_rescue.hypotheses.upright
@@ -216,6 +217,12 @@ def test_eval_options_set_the_rescue():
     every = conf("--min-support", "0", "--line-query", "raycast")
     assert every.line_query.min_support == 0 and every.line_rescue.hypotheses.min_support == 0
     assert every.line_query.method == "raycast"
+
+
+def test_eval_bad_rescue_threads(tmp_path, capsys):
+    assert main(["eval", "--dataset", "synthetic", "--out", str(tmp_path), "--rescue-threads", "0"]) == 2
+    assert "argument --rescue-threads: must be an integer >= 1" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
 
 
 def test_eval_bad_min_support(tmp_path, capsys):
