@@ -152,7 +152,7 @@ def examples_note(run: SceneRun, examples: list) -> Optional[str]:
         return None
     if not n_pt:
         return (f"every point-only pose failed ({len(run.queries)} of {len(run.queries)} queries) and lines brought "
-                f"none within 5 cm: only the largest point+line errors are shown")
+                "none within 5 cm: only the largest point+line errors are shown")
     return "no query's translation error improved with lines: only the largest point+line errors are shown"
 
 
