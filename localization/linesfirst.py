@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lipmap import geometry as geo
-from lipmap.poses import make_T, rotation_between
+from lipmap.poses import camera_center, make_T, rotation_between
 
 
 @dataclass
@@ -356,8 +356,7 @@ def lines_first_poses(p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, cam
     w = np.minimum(length, 200.0) / 200.0  # long lines count more, a wall-long one no more than 200 px
     poses = []
     for R, i in vp_rotations(n, w, vps, directions, views, conf):
-        V = np.asarray(views[i], dtype=float)
-        C0 = -V[:3, :3].T @ V[:3, 3]
+        C0 = camera_center(np.asarray(views[i], dtype=float))
         if len(p2d):
             poses += voted_translations(R, p2d, p3d, segs, n, w, map_lines, camera, conf)
         else:
