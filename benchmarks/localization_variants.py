@@ -51,6 +51,8 @@ def variant_config(base: LocalizationConfig, over: dict) -> LocalizationConfig:
         if "lines_first" in hyp:
             hyp["lines_first"] = replace(base.line_rescue.hypotheses.lines_first, **hyp["lines_first"])
         rs["hypotheses"] = replace(base.line_rescue.hypotheses, **hyp)
+    if "near" in rs:
+        rs["near"] = replace(base.line_rescue.near, **rs["near"])
     for key in ("line_gates", "strong_gates"):
         if key in over:
             over[key] = tuple(tuple(float(x) for x in g) for g in over[key])

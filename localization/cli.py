@@ -470,9 +470,10 @@ def _add_eval_parser(sub):
                    help="a query whose point-only pose has fewer than N inliers (or none) starts its lines from wide "
                         "gates around the P3P poses of its matches that the map lines agree with "
                         f"(default {LocalizationConfig().line_rescue.weak_inliers}; 0: off)")
-    p.add_argument("--rescue-solver", default=None, choices=["ransac", "refine"],
-                   help="how the rescue estimates a pose from each start: PnPL RANSAC, then robust refinements in "
-                        "narrowing gates (default), or the refinements alone: faster, less accurate (docs/localization.md)")
+    p.add_argument("--rescue-solver", default=None, choices=["near", "ransac", "refine"],
+                   help="how the rescue estimates a pose from each start: a PnPL RANSAC about the start (near, the "
+                        "default) or PoseLib's (ransac), then robust refinements in narrowing gates; or the refinements "
+                        "alone: faster, less accurate (docs/localization.md)")
     p.add_argument("--rescue-threads", type=int_at_least(1), default=None, metavar="N",
                    help="threads a weak query's rescue starts run on (default "
                         f"{LocalizationConfig().line_rescue.threads}; the poses are the same on any number; 1 where "

@@ -19,6 +19,7 @@ from .config import LocalizationConfig
 from .estimate import estimate_pose_points, inliers_at, local_pnpl_pose, pnpl_pose, refine_pnpl_pose, subsample_matches
 from .hypotheses import line_verified_poses
 from .linequery import LineQuery, LineQueryConfig, correct_line_matches
+from .near_ransac import pnpl_near_start
 from .parallel import mapped
 
 
@@ -299,8 +300,9 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
     """The best PnPL pose over ``priors`` with wide-gate line candidates (:class:`~localization.config.LineRescueConfig`),
     or None.
 
-    With ``solver="ransac"`` each start's wide-gate candidates (``gates[0]``) go through PoseLib's PnPL RANSAC, which
-    may land far from the start; each pose it keeps then goes through the later ``gates`` as robust refinements
+    With ``solver="near"`` each start's wide-gate candidates (``gates[0]``) go through a PnPL RANSAC about the start
+    (:func:`~localization.near_ransac.pnpl_near_start`), with ``solver="ransac"`` through PoseLib's, which may land
+    far from the start; each pose it keeps then goes through the later ``gates`` as robust refinements
     (:func:`refine_stages`), and the pose with the most point + line inliers at the last gate wins. A RANSAC per later
     stage only let minimal samples of near-parallel lines pull a right pose about, even one started at the true pose
     (docs/localization.md). With ``solver="refine"`` every start goes through ``refine_gates`` alone.
@@ -315,7 +317,7 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
     trace = [] if trace is None else trace
     if rc.solver == "refine":
         firsts, later = [(None, T, None) for T in priors], rc.refine_gates
-    elif rc.solver == "ransac":
+    elif rc.solver in ("ransac", "near"):
         plconf = replace(conf.point_line_pose, seed=conf.seed, max_iterations=rc.max_iterations,
                          max_reproj_error=rc.max_point_error,
                          min_iterations=min(conf.point_line_pose.min_iterations, rc.max_iterations))
@@ -323,6 +325,8 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
 
         def first_stage(T0):
             m = lq.match(lines2d, T0, camera, qconf)
+            if rc.solver == "near":
+                return pnpl_near_start(pm.p2d, pm.p3d, m["lines2d"], m["lines3d"], camera, T0, rc.near, plconf)
             return pnpl_pose(pm.p2d, pm.p3d, m["lines2d"], m["lines3d"], camera, conf=plconf)
 
         for T0, r in zip(priors, mapped(first_stage, priors, rc.threads)):
@@ -332,7 +336,7 @@ def rescue_pose(pm, lines2d, priors: list, lq: LineQuery, camera, conf: Localiza
             if kept:
                 firsts.append((len(trace) - 1, r["cam_from_world"], r))
     else:
-        raise ValueError(f"unknown line rescue solver {rc.solver!r} (ransac, refine)")
+        raise ValueError(f"unknown line rescue solver {rc.solver!r} (ransac, near, refine)")
     if later:
         # each pose's stages trace into a list of their own, joined in the starts' order: the same trace on any thread
         def stages(first):
@@ -365,7 +369,7 @@ def refine_stages(pm, lines2d, T, lq: LineQuery, camera, conf: LocalizationConfi
     finds too few lines or no pose; each stage is appended to ``trace`` (stage numbers after the RANSAC's)."""
     rc = conf.line_rescue
     vis, r = lq.visible_lines(T, camera, conf.line_query.occlusion_tol), None
-    first = 1 if rc.solver == "ransac" else 0
+    first = 0 if rc.solver == "refine" else 1
     for k, gate in enumerate(gates):
         m = lq.match(lines2d, T, camera, _rescue_query(conf, gate), vis)
         r = None

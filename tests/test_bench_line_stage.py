@@ -23,7 +23,7 @@ class _Points:
         return self.pm
 
 
-@pytest.mark.parametrize("solver", ["ransac", "refine"])
+@pytest.mark.parametrize("solver", ["near", "ransac", "refine"])
 def test_parts_add_up_to_at_most_the_line_stage(solver):
     import localization.query as P
 

@@ -204,7 +204,8 @@ def test_eval_options_set_the_rescue():
     def conf(*opts):
         return eval_config(build_parser().parse_args(["eval", "--dataset", "synthetic", "--out", "x", *opts]))
 
-    assert conf().line_rescue.solver == "ransac" and conf().line_rescue.weak_inliers == 20
+    assert conf().line_rescue.solver == "near" and conf().line_rescue.weak_inliers == 20
+    assert conf("--rescue-solver", "ransac").line_rescue.solver == "ransac"
     assert conf("--rescue-solver", "refine").line_rescue.solver == "refine"
     assert conf().line_rescue.threads == 2 and conf("--rescue-threads", "1").line_rescue.threads == 1
     assert conf("--line-rescue", "0", "--line-query", "raycast").line_rescue.weak_inliers == 0

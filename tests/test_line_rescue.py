@@ -306,7 +306,8 @@ def test_a_weak_point_only_pose_that_few_lines_hold_fails(monkeypatch, held_by):
     assert pl["success"] and np.allclose(pl["cam_from_world"], point_only)
 
 
-def test_ransac_rescue_refines_each_kept_pose_without_ransac_and_picks_by_the_last_stage(monkeypatch):
+@pytest.mark.parametrize("solver, ransac", [("near", "pnpl_near_start"), ("ransac", "pnpl_pose")])
+def test_ransac_rescue_refines_each_kept_pose_without_ransac_and_picks_by_the_last_stage(monkeypatch, solver, ransac):
     """One PnPL RANSAC per start; the later gates refine each kept pose (no more RANSAC), and the best score at the
     last gate wins: the useless start's pose, kept or not, loses to the near one's."""
     import localization.query as Q
@@ -314,10 +315,10 @@ def test_ransac_rescue_refines_each_kept_pose_without_ransac_and_picks_by_the_la
     T, ends, l2, pm = _scene(2)
     lq = LineQuery(ends)
     ransacs, refines = [], []
-    pnpl, refine = Q.pnpl_pose, Q.refine_pnpl_pose
-    monkeypatch.setattr(Q, "pnpl_pose", lambda *a, **k: ransacs.append(1) or pnpl(*a, **k))
+    pnpl, refine = getattr(Q, ransac), Q.refine_pnpl_pose
+    monkeypatch.setattr(Q, ransac, lambda *a, **k: ransacs.append(1) or pnpl(*a, **k))
     monkeypatch.setattr(Q, "refine_pnpl_pose", lambda *a, **k: refines.append(1) or refine(*a, **k))
-    rescue = LineRescueConfig(weak_inliers=12)  # the default gates: RANSAC at 30 px, then 15 and 8 px refinements
+    rescue = LineRescueConfig(weak_inliers=12, solver=solver)  # the default gates: RANSAC at 30 px, then 15 and 8 px refinements
     trace = []
     r = rescue_pose(pm, l2, [_off(T, 60, 40), _off(T, 8, 3)], lq, CAM, replace(LocalizationConfig(), line_rescue=rescue),
                     trace)
@@ -334,7 +335,7 @@ def test_ransac_rescue_refines_each_kept_pose_without_ransac_and_picks_by_the_la
     assert len(ransacs) == 3 and len(refines) == 2 * len(kept0) and pose_errors(T, r1["cam_from_world"])[0] < 0.005
 
 
-@pytest.mark.parametrize("solver", ["ransac", "refine"])
+@pytest.mark.parametrize("solver", ["near", "ransac", "refine"])
 def test_rescue_on_threads_gives_the_single_threads_pose_and_trace(solver):
     """The starts run side by side on ``threads``; the pose and the trace (stages, origins, scores, in the starts'
     order) are those of one thread."""
@@ -386,8 +387,9 @@ def test_a_rescued_pose_stands_and_the_lines_confirm_it(monkeypatch, rounds):
 
     T, ends, l2, pm = _scene(1)
     calls, rescued = [], []
-    pnpl, local, rescue_pose_ = Q.pnpl_pose, Q.local_pnpl_pose, Q.rescue_pose
+    pnpl, near, local, rescue_pose_ = Q.pnpl_pose, Q.pnpl_near_start, Q.local_pnpl_pose, Q.rescue_pose
     monkeypatch.setattr(Q, "pnpl_pose", lambda *a, **k: calls.append("ransac") or pnpl(*a, **k))
+    monkeypatch.setattr(Q, "pnpl_near_start", lambda *a, **k: calls.append("near") or near(*a, **k))
     monkeypatch.setattr(Q, "local_pnpl_pose", lambda *a, **k: calls.append("local") or local(*a, **k))
     monkeypatch.setattr(Q, "rescue_pose", lambda *a, **k: rescued.append(rescue_pose_(*a, **k)) or rescued[-1])
     rescue = LineRescueConfig(weak_inliers=12, prior_views=2, rounds=rounds,
@@ -398,7 +400,7 @@ def test_a_rescued_pose_stands_and_the_lines_confirm_it(monkeypatch, rounds):
     pl = rec["point+line"]
     assert pl["success"] and pl["rescued"] and pose_errors(T, np.array(pl["cam_from_world"]))[0] < 0.005
     after = calls[2:]  # after the rescue's RANSAC from each of the two starts
-    assert calls[:2] == ["ransac", "ransac"]
+    assert calls[:2] == ["near", "near"]
     if rounds == "confirm":
         assert after == []
         np.testing.assert_array_equal(np.array(pl["cam_from_world"]), rescued[0]["cam_from_world"])

@@ -17,7 +17,7 @@ def _bench():
     return benchmark_module("rescue_starts.py")
 
 
-@pytest.mark.parametrize("solver", ["ransac", "refine"])
+@pytest.mark.parametrize("solver", ["near", "ransac", "refine"])
 def test_trace_holds_every_start_and_the_outcome_is_checked_against_the_truth(solver):
     bench = _bench()
     T, ends, l2, pm = _scene(1)
@@ -35,7 +35,7 @@ def test_trace_holds_every_start_and_the_outcome_is_checked_against_the_truth(so
     last = {t["origin"]: t for t in trace if "origin" in t}
     ends = [last[i] for i, t in enumerate(trace) if t.get("stage") == 0]
     assert ends[1]["kept"] and ends[1]["score"] > ends[0]["score"]
-    assert all(t["stage"] == (len(rescue.gates) - 1 if solver == "ransac" else len(rescue.refine_gates) - 1)
+    assert all(t["stage"] == (len(rescue.gates) - 1 if solver != "refine" else len(rescue.refine_gates) - 1)
                for t in ends if t["kept"])
     o = bench.query_outcome(rec, trace, T, CAM, 6.0)
     assert o["right_points"] == 3 and o["starts"] == 2

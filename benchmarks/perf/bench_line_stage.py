@@ -8,8 +8,8 @@ there when missing), as in ``benchmarks/localization_variants.py``. Every query 
 defaults while the parts of the line stage are timed:
 
 * ``hypotheses``: P3P poses of the point matches scored by the map lines (weak queries only);
-* ``rescue query`` / ``rescue PnPL``: the wide-gate line queries (with their visibility tests) and PoseLib's PnPL
-  RANSAC (or, with ``solver="refine"``, its robust refinement) of each rescue start;
+* ``rescue query`` / ``rescue PnPL``: the wide-gate line queries (with their visibility tests) and the PnPL RANSAC
+  (``solver``: about the start, or PoseLib's) and robust refinements of each rescue start;
 * ``visibility``, ``narrow query``, ``narrow PnPL``: the narrowing rounds every query goes through (a rescued
   pose's round only queries the lines that confirm it: no PnPL).
 
@@ -51,13 +51,14 @@ class PartTimer:
         self.P, self.lq, self.t, self.in_rescue = P, lq, defaultdict(float), False
         self.local, self.lock = threading.local(), threading.Lock()  # the rescue's starts run on threads
         self.saved = [(P, "line_verified_poses"), (P, "pnpl_pose"), (P, "local_pnpl_pose"), (P, "refine_pnpl_pose"),
-                      (P, "rescue_pose"), (lq, "match"), (lq, "visible_lines")]
+                      (P, "pnpl_near_start"), (P, "rescue_pose"), (lq, "match"), (lq, "visible_lines")]
         self.originals = [getattr(o, n) for o, n in self.saved]
         self._wrap(P, "line_verified_poses", lambda: "hypotheses")
         self._wrap(P, "pnpl_pose", lambda: "rescue PnPL" if self.in_rescue else "narrow PnPL")
         self._wrap(P, "local_pnpl_pose", lambda: "narrow PnPL")
         self._wrap(lq, "match", lambda: "rescue query" if self.in_rescue else "narrow query")
         self._wrap(P, "refine_pnpl_pose", lambda: "rescue PnPL")
+        self._wrap(P, "pnpl_near_start", lambda: "rescue PnPL")
         self._wrap(lq, "visible_lines", lambda: "rescue query" if self.in_rescue else "visibility")
         rescue = P.rescue_pose
 
