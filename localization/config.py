@@ -57,8 +57,8 @@ class LineRescueConfig:
     same_pose_deg: float = 3.0
     # "near": each start's candidates go through a PnPL RANSAC about the start (localization.near_ransac: minimal
     # samples solved linearly near its rotation, scored as PoseLib's), and the later ``gates`` refine the pose it keeps;
-    # "ransac": PoseLib's PnPL RANSAC instead, which samples with no regard to the start (held-out split: "near" is as
-    # accurate or more at every budget, in 10-20 % less time on 2 threads; docs/localization.md, `-near`);
+    # "ransac": PoseLib's PnPL RANSAC instead, which samples with no regard to the start (held-out split, 1-10 matches:
+    # "near" puts as many queries within 5 cm or more, in 15-35 % less time on 2 threads; docs/localization.md, `-near`);
     # "refine": each start goes through every stage of ``refine_gates`` as a robust refinement (Cauchy, scale
     # ``refine_scale`` x the gate) of its nearest candidates, without RANSAC: half the time, a higher median (docs/localization.md)
     solver: str = "near"
