@@ -6,9 +6,11 @@ poses, vanishing-point rotations, the point-only pose). Near such a rotation ``R
 ``R = exp([w]x) R0, t`` with small ``w``, and each point or line match gives two equations that are linear in
 ``(w, t)`` once ``exp([w]x)`` is replaced by ``I + [w]x``: three matches fix a pose. Two matches fix the
 translation at ``R0`` itself (``w = 0``), which needs one right match fewer - with a quarter of the wide gate's
-line candidates right, 1 sample in 17 instead of 1 in 70. Every sample's pose is scored exactly (its inliers at the
-rotation ``exp([w]x) R0``), and the best one is refined over its inliers by PoseLib's point+line refinement
-(:func:`~localization.estimate.pnpl_pose`'s weighted one), which also undoes the linearisation.
+line candidates right, 1 sample in 17 instead of 1 in 70. Every sample's pose is scored exactly at the rotation
+``exp([w]x) R0`` by MSAC, as PoseLib's RANSAC scores (:func:`msac_costs`: an inlier count kept poses that lay many wrong
+candidates loosely); the best few distinct ones are refined over their inliers by PoseLib's point+line refinement
+(:func:`~localization.estimate.pnpl_pose`'s weighted one), which also undoes the linearisation, and the cheapest of
+them at the final thresholds is the pose.
 
 PoseLib's own PnPL RANSAC samples uniformly among all matches, solves each sample in C++ with no prior and always
 ran its 1,000 iterations over the wide gate's hundreds of candidates; this one uses the start, as the wide gate
@@ -22,6 +24,7 @@ from typing import Optional
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from lipmap import geometry as geo
 from lipmap.poses import make_T
 
 from .estimate import (PointLinePoseConfig, _camera_pose, _point_line_input, _pose_result, _weighted_refinement,
@@ -35,8 +38,8 @@ class NearRansacConfig:
     max_rotation_deg: float = 15.0  # a triple's rotation farther from the start's is dropped (the linearisation fails)
     # px: a sample pose's line inliers (wider than the final threshold: its rotation is linearised, or the start's)
     score_line_error: float = 8.0
-    lo_rounds: int = 2  # refinements over the inliers: the first at score_line_error, the rest at the final threshold
-    lo_best: int = 8  # the best this many samples are refined; the most inliers after refinement win
+    lo_best: int = 8  # the best this many samples are refined once (lines within score_line_error); the cheapest wins
+    lo_rounds: int = 2  # refinements of the winner in all, the later ones over its lines within the final threshold
     distinct_m: float = 0.05  # ... each this far (or distinct_deg) from the better ones: the same pose twice refines to itself
     distinct_deg: float = 1.0
     passes: int = 1  # sampling rounds; each later one linearises about the previous round's refined pose
@@ -68,13 +71,18 @@ def match_equations(p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, lines
     n[:N, 1, 1], n[:N, 1, 2] = 1.0, -x[:, 1]
     n[:N] /= np.linalg.norm(n[:N], axis=2, keepdims=True)
     Z[:N] = (p3d @ R0.T)[:, None]
-    ends = np.concatenate([lines2d, np.ones((M, 2, 1))], 2)
-    nl = np.cross(ends[:, 0], ends[:, 1]) @ K  # the plane through the centre and the segment: K^T l
+    nl = _segment_planes(lines2d, K)
     n[N:] = (nl / np.linalg.norm(nl, axis=1, keepdims=True))[:, None]
     Z[N:] = lines3d @ R0.T
     A = np.concatenate([-np.cross(n, Z), n], 2)
     b = -np.einsum("ckd,ckd->ck", n, Z)
     return A, b
+
+
+def _segment_planes(lines2d: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """:math:`(M, 3)` normals of the planes through the camera centre and each segment, in the camera frame, scaled so
+    that ``n . Xc`` is the depth of ``Xc`` times its projection's pixel distance from the segment's line."""
+    return geo.backprojected_planes(lines2d, np.c_[K, np.zeros(3)])[:, :3]
 
 
 def solve_samples(A: np.ndarray, b: np.ndarray, pairs: np.ndarray, triples: np.ndarray,
@@ -131,9 +139,7 @@ def msac_costs(w: np.ndarray, t: np.ndarray, R0: np.ndarray, p2d: np.ndarray, p3
             sq = (proj[:, 0] / proj[:, 2] - p2d[:, 0]) ** 2 + (proj[:, 1] / proj[:, 2] - p2d[:, 1]) ** 2
         cost += np.where((proj[:, 2] > 0) & (sq < max_point_error ** 2), sq, max_point_error ** 2).sum(1)
     if M:
-        ends = np.concatenate([lines2d, np.ones((M, 2, 1))], 2)
-        l = np.cross(ends[:, 0], ends[:, 1])
-        nrm = np.repeat((l / np.linalg.norm(l[:, :2], axis=1, keepdims=True)) @ K, 2, axis=0)  # (2M, 3): K^T l
+        nrm = np.repeat(_segment_planes(lines2d, K), 2, axis=0)  # (2M, 3)
         X = lines3d.reshape(-1, 3).astype(np.float32)
         Y = np.matmul(R.astype(np.float32), X.T)  # (H, 3, 2M): the camera-frame endpoints less t
         t32 = t.astype(np.float32)
