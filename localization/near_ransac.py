@@ -46,7 +46,7 @@ class NearRansacConfig:
 
 
 def match_equations(p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, lines3d: np.ndarray, R0: np.ndarray,
-                    K: np.ndarray) -> tuple:
+                    camera) -> tuple:
     """Two linear equations in ``(w, t)`` per match, for the pose ``(I + [w]x) R0, t``.
 
     A match constrains the camera-frame point ``Xc = Z + w x Z + t`` (``Z = R0 X``) to a plane through the camera
@@ -56,22 +56,21 @@ def match_equations(p2d: np.ndarray, p3d: np.ndarray, lines2d: np.ndarray, lines
     Args:
         p2d: :math:`(N, 2)` pixels; p3d: :math:`(N, 3)` world.
         lines2d: :math:`(M, 2, 2)` segments, pixels; lines3d: :math:`(M, 2, 3)` their 3D segments, world.
-        R0: :math:`(3, 3)` the start's rotation (cam_from_world); K: :math:`(3, 3)` intrinsics.
+        R0: :math:`(3, 3)` the start's rotation (cam_from_world); camera: pinhole (``K``).
 
     Returns:
         A :math:`(N + M, 2, 6)` and b :math:`(N + M, 2)`: rows ``A[c, k] . (w, t) = b[c, k]``, points first. Each
         row's residual is a distance to its plane (metres).
     """
     N, M = len(p2d), len(lines2d)
-    Kinv = np.linalg.inv(K)
     n = np.zeros((N + M, 2, 3))
     Z = np.zeros((N + M, 2, 3))
-    x = np.concatenate([p2d, np.ones((N, 1))], 1) @ Kinv.T
+    x = geo.unproject_points(p2d, 1.0, camera)
     n[:N, 0, 0], n[:N, 0, 2] = 1.0, -x[:, 0]
     n[:N, 1, 1], n[:N, 1, 2] = 1.0, -x[:, 1]
     n[:N] /= np.linalg.norm(n[:N], axis=2, keepdims=True)
     Z[:N] = (p3d @ R0.T)[:, None]
-    nl = _segment_planes(lines2d, K)
+    nl = _segment_planes(lines2d, np.asarray(camera.K, dtype=np.float64))
     n[N:] = (nl / np.linalg.norm(nl, axis=1, keepdims=True))[:, None]
     Z[N:] = lines3d @ R0.T
     A = np.concatenate([-np.cross(n, Z), n], 2)
@@ -195,7 +194,7 @@ def pnpl_near_start(p2d, p3d, lines2d, lines3d, camera, start: np.ndarray, conf:
     rng = np.random.default_rng(pc.seed)
     best_T, best_cost = None, np.inf
     for _ in range(max(1, conf.passes)):
-        A, b = match_equations(P2, P3, L2, L3, R0, K)
+        A, b = match_equations(P2, P3, L2, L3, R0, camera)
         n = len(A)
         w, t = solve_samples(A, b, _samples(n, 2, conf.translation_samples, rng),
                              _samples(n, 3, conf.pose_samples, rng), conf.max_rotation_deg)
@@ -207,10 +206,8 @@ def pnpl_near_start(p2d, p3d, lines2d, lines3d, camera, start: np.ndarray, conf:
         Ts = [_locally_optimised(make_T(Rotation.from_rotvec(w[k]).as_matrix() @ R0, t[k]), p2d, p3d, l2, l3, okp, okl,
                                  camera, conf.score_line_error, 1, pc) for k in picks]
         Ts = np.stack([T for T in Ts if np.isfinite(T).all()] or [np.full((4, 4), np.nan)])
-        if not np.isfinite(Ts).all():
-            break
         c = msac_costs(Rotation.from_matrix(Ts[:, :3, :3] @ R0.T).as_rotvec(), Ts[:, :3, 3], R0, P2, P3, L2, L3, K,
-                       pc.max_reproj_error, pc.max_line_error)
+                       pc.max_reproj_error, pc.max_line_error) if np.isfinite(Ts).all() else np.full(1, np.inf)
         if c.min() < best_cost:
             best_T, best_cost = Ts[int(np.argmin(c))], float(c.min())
         if best_T is None:

@@ -56,11 +56,11 @@ def _off(T, cm, deg, seed=1):
 
 def test_right_matches_satisfy_their_equations_at_the_true_pose():
     T, p2, p3, l2, l3, right = _scene(noise_px=0.0)
-    A, b = match_equations(p2, p3, l2[right], l3[right], T[:3, :3], CAM.K)
+    A, b = match_equations(p2, p3, l2[right], l3[right], T[:3, :3], CAM)
     assert A.shape == (len(p2) + right.sum(), 2, 6) and b.shape == (len(A), 2)
     np.testing.assert_allclose(A @ np.r_[np.zeros(3), T[:3, 3]], b, atol=1e-9)
     # a wrong candidate does not
-    A, b = match_equations(p2[:0], p3[:0], l2[~right], l3[~right], T[:3, :3], CAM.K)
+    A, b = match_equations(p2[:0], p3[:0], l2[~right], l3[~right], T[:3, :3], CAM)
     assert np.median(np.abs(A @ np.r_[np.zeros(3), T[:3, 3]] - b)) > 1e-3
 
 
@@ -77,7 +77,7 @@ def test_batched_solves_agree_with_the_reference():
 def test_a_triple_recovers_a_small_rotation_to_second_order():
     T, p2, p3, l2, l3, right = _scene()
     start = _off(T, 0, 2.0)
-    A, b = match_equations(p2, p3, l2[right], l3[right], start[:3, :3], CAM.K)
+    A, b = match_equations(p2, p3, l2[right], l3[right], start[:3, :3], CAM)
     w, t = solve_samples(A, b, np.zeros((0, 2), int), np.array([[0, 5, 9]]), 15.0)
     R = Rotation.from_rotvec(w[0]).as_matrix() @ start[:3, :3]
     dt, dr = pose_errors(T, make_T(R, t[0]))
@@ -113,6 +113,9 @@ def test_seeded_and_refuses_too_few_lines():
     a = pnpl_near_start(p2, p3, l2, l3, CAM, start, NearRansacConfig(pose_samples=50, translation_samples=20))
     b = pnpl_near_start(p2, p3, l2, l3, CAM, start, NearRansacConfig(pose_samples=50, translation_samples=20))
     np.testing.assert_array_equal(a["cam_from_world"], b["cam_from_world"])
+    # a second pass linearises about the first pass's pose
+    two = pnpl_near_start(p2, p3, l2, l3, CAM, _off(T, 20, 8), NearRansacConfig(passes=2))
+    assert pose_errors(T, two["cam_from_world"])[0] < 0.01
     l3 = l3.copy()
     l3[2:] = np.nan  # unusable candidates are left out, not fatal
     r = pnpl_near_start(p2, p3, l2, l3, CAM, start)
