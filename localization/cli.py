@@ -429,7 +429,7 @@ def _add_eval_parser(sub):
     from lipmap.datasets.synthetic import SYNTH_PRESETS
 
     from .linequery import LINE_QUERY_METHODS, LineQueryConfig
-    from .config import LocalizationConfig
+    from .config import RESCUE_SOLVERS, LocalizationConfig
     from .points import confs as point_confs
 
     p = sub.add_parser("eval", help="localization benchmark: map, localize point-only and point+line, evaluate")
@@ -470,7 +470,7 @@ def _add_eval_parser(sub):
                    help="a query whose point-only pose has fewer than N inliers (or none) starts its lines from wide "
                         "gates around the P3P poses of its matches that the map lines agree with "
                         f"(default {LocalizationConfig().line_rescue.weak_inliers}; 0: off)")
-    p.add_argument("--rescue-solver", default=None, choices=["near", "ransac", "refine"],
+    p.add_argument("--rescue-solver", default=None, choices=RESCUE_SOLVERS,
                    help="how the rescue estimates a pose from each start: a PnPL RANSAC about the start (near, the "
                         "default) or PoseLib's (ransac), then robust refinements in narrowing gates; or the refinements "
                         "alone: faster, less accurate (docs/localization.md)")
